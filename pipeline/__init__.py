@@ -1,0 +1,1 @@
+"""sphshot pipeline: job spec, shot cache, stages, executors and the CLI."""

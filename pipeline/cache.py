@@ -1,0 +1,246 @@
+"""The shot cache: file names, atomic publishing, parameter hashes and frame validity.
+
+This is the only module that knows where files live. Layout of one shot version::
+
+    <output>/<name>/v001/
+        manifest.json                     stage -> parameter hash (chained sim <- surface <- render)
+        sim/<name>.0001.h5                particles (position, velocity, density, pressure, id, fluid)
+        checkpoints/<name>.ckpt.0010.h5   full solver state to resume from
+        surface/<name>.0001.vdb           level set `surface`, fog `density`, vector `velocity`
+        surface/<name>.0001.ply           mesh (or .<fluid>.0001.ply per fluid; .obj/.vtu on request)
+        render/<name>.0001.png            image
+        render/<name>.mp4, render/<name>.contact.png
+
+A frame of a stage is *valid* when every file it owns exists under its final name and the
+manifest's hash for the stage equals the hash of the current spec. Files only ever appear
+under a final name by an atomic rename, so existing means complete.
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import socket
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+from .spec import ShotSpec
+
+STAGES = ("sim", "surface", "render")
+UPSTREAM = {"sim": None, "surface": "sim", "render": "surface"}
+_HOST = socket.gethostname().split(".")[0].replace("-", "_") or "host"
+
+
+# ------------------------------------------------------------------------------ atomic files
+def _tmp_name(final: Path) -> Path:
+    return final.with_name(f".{final.name}.{_HOST}-{os.getpid()}.tmp")
+
+
+@contextlib.contextmanager
+def atomic_path(final: Path) -> Iterator[Path]:
+    """Yield a temporary path beside `final`; on success fsync it and rename it into place.
+
+    Two processes writing the same frame each write their own temporary file, and each rename is
+    atomic, so readers see one complete file or none. On an exception the temporary is removed.
+    """
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_name(final)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, final)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+    with contextlib.suppress(OSError):  # make the rename itself durable
+        dfd = os.open(final.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+
+
+def write_text_atomic(final: Path, text: str) -> None:
+    with atomic_path(final) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+def remove_dead_temporaries(folder: Path) -> int:
+    """Remove temporaries left by killed processes of this host (never another live writer's)."""
+    removed = 0
+    if not folder.is_dir():
+        return 0
+    for tmp in folder.glob(f".*.{_HOST}-*.tmp"):
+        try:
+            pid = int(tmp.name.rsplit("-", 1)[1].split(".")[0])
+        except ValueError:
+            continue
+        if pid == os.getpid() or not _pid_alive(pid):
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+                removed += 1
+    return removed
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+# ------------------------------------------------------------------------------------ hashes
+def _digest(obj) -> str:
+    blob = json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def stage_hashes(spec: ShotSpec) -> dict[str, str]:
+    """Chained parameter hashes: a change upstream changes every hash below it."""
+    out: dict[str, str] = {}
+    for stage in STAGES:
+        up = UPSTREAM[stage]
+        out[stage] = _digest({"upstream": out.get(up), "params": spec.hashed_sections(stage),
+                              "format": FORMAT_VERSION[stage]})
+    return out
+
+
+# Bump when a stage's file format or algorithm changes in a way that invalidates old caches.
+FORMAT_VERSION = {"sim": 1, "surface": 1, "render": 1}
+
+
+# ------------------------------------------------------------------------------------- paths
+@dataclass(frozen=True)
+class ShotPaths:
+    root: Path
+    name: str
+    mesh_ext: str
+    fluids: tuple[str, ...]
+    per_fluid: bool
+
+    @classmethod
+    def for_spec(cls, spec: ShotSpec) -> "ShotPaths":
+        return cls(root=spec.output_root, name=spec.shot.name, mesh_ext=spec.surface.format,
+                   fluids=tuple(f.name for f in spec.fluids), per_fluid=spec.surface.per_fluid)
+
+    def stage_dir(self, stage: str) -> Path:
+        return self.root / stage
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "manifest.json"
+
+    @property
+    def checkpoint_dir(self) -> Path:
+        return self.root / "checkpoints"
+
+    def sim_frame(self, frame: int) -> Path:
+        return self.root / "sim" / f"{self.name}.{frame:04d}.h5"
+
+    def checkpoint(self, frame: int) -> Path:
+        return self.checkpoint_dir / f"{self.name}.ckpt.{frame:04d}.h5"
+
+    def surface_vdb(self, frame: int) -> Path:
+        return self.root / "surface" / f"{self.name}.{frame:04d}.vdb"
+
+    def surface_meshes(self, frame: int) -> dict[str | None, Path]:
+        """Mesh files of a frame: {None: all fluids} or {fluid name: mesh} when per_fluid."""
+        d = self.root / "surface"
+        if self.per_fluid:
+            return {f: d / f"{self.name}.{f}.{frame:04d}.{self.mesh_ext}" for f in self.fluids}
+        return {None: d / f"{self.name}.{frame:04d}.{self.mesh_ext}"}
+
+    def render_frame(self, frame: int) -> Path:
+        return self.root / "render" / f"{self.name}.{frame:04d}.png"
+
+    def render_depth(self, frame: int) -> Path:
+        return self.root / "render" / f"{self.name}.depth.{frame:04d}.png"
+
+    @property
+    def movie(self) -> Path:
+        return self.root / "render" / f"{self.name}.mp4"
+
+    @property
+    def contact_sheet(self) -> Path:
+        return self.root / "render" / f"{self.name}.contact.png"
+
+    def frame_files(self, stage: str, frame: int) -> list[Path]:
+        """Every file a stage owns for one frame; the frame is valid when all exist."""
+        if stage == "sim":
+            return [self.sim_frame(frame)]
+        if stage == "surface":
+            return [self.surface_vdb(frame), *self.surface_meshes(frame).values()]
+        if stage == "render":
+            return [self.render_frame(frame)]
+        raise KeyError(stage)
+
+    def checkpoints(self) -> list[int]:
+        """Frames that have a published checkpoint, ascending."""
+        out = []
+        for p in self.checkpoint_dir.glob(f"{self.name}.ckpt.*.h5"):
+            with contextlib.suppress(ValueError):
+                out.append(int(p.name.rsplit(".", 2)[1]))
+        return sorted(out)
+
+
+# ---------------------------------------------------------------------------------- manifest
+def read_manifest(paths: ShotPaths) -> dict:
+    try:
+        return json.loads(paths.manifest.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return {"stages": {}}
+    except (OSError, json.JSONDecodeError):
+        return {"stages": {}}
+
+
+def record_stage(spec: ShotSpec, paths: ShotPaths, stage: str) -> None:
+    """Write the stage's current hash into the manifest (atomic; idempotent across workers)."""
+    manifest = read_manifest(paths)
+    manifest.setdefault("stages", {})[stage] = {
+        "hash": stage_hashes(spec)[stage], "params": spec.hashed_sections(stage)}
+    manifest["shot"] = spec.shot.name
+    paths.root.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(paths.manifest, json.dumps(manifest, indent=2, sort_keys=True, default=str))
+
+
+@dataclass(frozen=True)
+class StageScan:
+    stage: str
+    valid: tuple[int, ...]
+    missing: tuple[int, ...]
+    stale: tuple[int, ...]      # files exist but were made with other parameters
+    hash_changed: bool          # the manifest holds another hash for this stage
+
+
+def scan(spec: ShotSpec, paths: ShotPaths, stage: str, frames) -> StageScan:
+    recorded = read_manifest(paths).get("stages", {}).get(stage, {}).get("hash")
+    current = stage_hashes(spec)[stage]
+    changed = recorded is not None and recorded != current
+    valid, missing, stale = [], [], []
+    for f in frames:
+        files = paths.frame_files(stage, f)
+        present = all(p.exists() for p in files)
+        if not present:
+            missing.append(f)
+        elif recorded == current:
+            valid.append(f)
+        else:
+            stale.append(f)   # present but the manifest says other params (or says nothing)
+    return StageScan(stage, tuple(valid), tuple(missing), tuple(stale), changed)
+
+
+def clear_stage(paths: ShotPaths, stage: str) -> None:
+    """Remove a stage's published files (used by --force when its parameters changed)."""
+    folders = [paths.stage_dir(stage)] + ([paths.checkpoint_dir] if stage == "sim" else [])
+    for folder in folders:
+        if folder.is_dir():
+            for p in folder.iterdir():
+                if p.is_file():
+                    with contextlib.suppress(FileNotFoundError):
+                        p.unlink()

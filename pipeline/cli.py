@@ -1,0 +1,135 @@
+"""`sphshot` command line: parse, validate, dispatch. Every stage is callable without it."""
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+
+from . import errors
+from .errors import SphshotError, UsageError
+
+EPILOG = f"""\
+exit codes:
+  {errors.EXIT_OK}  every requested frame is valid on disk
+  {errors.EXIT_FAILURE}  runtime failure (unstable solver, failed frame, I/O error)
+  {errors.EXIT_USAGE}  bad job file, --set, frame range or arguments; nothing was written
+  {errors.EXIT_STALE}  cached frames were made with other parameters (use --force or a new shot.version)
+  {errors.EXIT_WAITING}  waiting on an upstream frame (e.g. sim frame N); retry later
+  {errors.EXIT_INTERRUPTED}  interrupted (SIGTERM/SIGUSR1/SIGINT) after a checkpoint; run again to resume
+"""
+
+STAGE_CHOICES = ("sim", "surface", "render", "all")
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, no usage dump, exit 2 through the normal path
+        raise UsageError(message)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="sphshot", description="Headless SPH fluid shots: sim -> surface -> render.",
+                epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+
+    def common(sp):
+        sp.add_argument("job", help="shot job file (TOML)")
+        sp.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a job key with a TOML value, e.g. --set sim.particle_radius=0.02")
+
+    v = sub.add_parser("validate", help="check a job file; print one line per problem",
+                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    common(v)
+
+    r = sub.add_parser("run", help="run stages over frames, skipping frames already valid",
+                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    common(r)
+    r.add_argument("--stage", choices=STAGE_CHOICES, default="all")
+    r.add_argument("--frames", help="A, A-B or A-BxSTEP (default: the whole shot)")
+    r.add_argument("--force", action="store_true", help="recompute frames even when valid")
+    r.add_argument("--executor", choices=("serial", "dask"), default="serial")
+    r.add_argument("--workers", type=int, default=0, help="dask: local worker processes (0 = cores)")
+    r.add_argument("--scheduler", help="dask: address of an existing scheduler, tcp://host:8786")
+
+    s = sub.add_parser("status", help="per stage: frames valid, missing, stale, and where")
+    common(s)
+    return p
+
+
+def _stages(choice: str) -> list[str]:
+    return ["sim", "surface", "render"] if choice == "all" else [choice]
+
+
+def cmd_validate(args) -> int:
+    from .spec import load_spec
+    spec = load_spec(args.job, args.overrides)
+    print(f"{args.job}: ok ({spec.shot.name} v{spec.shot.version:03d}, frames "
+          f"{spec.shot.frame_start}-{spec.shot.frame_end}, {len(spec.fluids)} fluid(s), "
+          f"{len(spec.colliders)} collider(s))")
+    return 0
+
+
+def cmd_status(args) -> int:
+    from . import cache
+    from .frames import format_frames
+    from .spec import load_spec
+    spec = load_spec(args.job, args.overrides)
+    paths = cache.ShotPaths.for_spec(spec)
+    print(f"{spec.shot.name} v{spec.shot.version:03d}: {paths.root}")
+    for stage in cache.STAGES:
+        sc = cache.scan(spec, paths, stage, spec.frames)
+        line = (f"  {stage:8s} valid {len(sc.valid):4d}  missing {len(sc.missing):4d}  "
+                f"stale {len(sc.stale):4d}  {paths.stage_dir(stage)}")
+        if sc.missing and sc.valid:
+            line += f"  (missing: {format_frames(sc.missing)})"
+        if sc.stale:
+            line += f"  (stale: {format_frames(sc.stale)})"
+        print(line)
+    ckpts = paths.checkpoints()
+    if ckpts:
+        print(f"  checkpoints: {format_frames(ckpts)}")
+    return 0
+
+
+def cmd_run(args) -> int:
+    from .executor import make_executor
+    from .frames import parse_frames
+    from .progress import Progress
+    from .runner import run_stages
+    from .spec import load_spec
+    spec = load_spec(args.job, args.overrides)
+    frames = parse_frames(args.frames, spec.frames) if args.frames else list(spec.frames)
+    if args.workers < 0:
+        raise UsageError(f"--workers: expected a count >= 0, got {args.workers}")
+    executor = make_executor(args.executor, workers=args.workers, scheduler=args.scheduler)
+    try:
+        run_stages(spec, _stages(args.stage), frames, force=args.force, executor=executor,
+                   progress=Progress())
+    finally:
+        executor.close()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=os.environ.get("SPHSHOT_LOG", "INFO"), format="sphshot: %(message)s",
+                        stream=sys.stderr)
+    os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        if args.command is None:
+            parser.print_help()
+            return errors.EXIT_USAGE
+        handler = {"validate": cmd_validate, "run": cmd_run, "status": cmd_status}[args.command]
+        return handler(args)
+    except SphshotError as err:
+        for line in str(err).splitlines() or [err.__class__.__name__]:
+            print(f"sphshot: error: {line}", file=sys.stderr)
+        return err.exit_code
+    except KeyboardInterrupt:
+        print("sphshot: interrupted", file=sys.stderr)
+        return errors.EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,280 @@
+"""The render stage: off-screen PyVista images of the surface meshes (or particles).
+
+No display is needed: VTK renders through EGL (Mesa's llvmpipe on a CPU machine, the GPU's EGL
+where there is one) or OSMesa. One plotter serves a whole chunk of frames: static actors
+(ground, colliders, lights) are built once and only the fluid actors change per frame.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .cache import atomic_path
+from .errors import StageError
+from .particles import read_frame
+
+log = logging.getLogger("sphshot")
+
+
+def _offscreen_env() -> None:
+    if not os.environ.get("DISPLAY"):
+        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+
+def camera_at(render, frame: int):
+    """The camera for a frame: the fixed camera, or keyframes interpolated linearly."""
+    keys = render.camera_keys
+    if not keys:
+        return render.camera
+    if frame <= keys[0].frame:
+        return keys[0]
+    if frame >= keys[-1].frame:
+        return keys[-1]
+    for a, b in zip(keys, keys[1:]):
+        if a.frame <= frame <= b.frame:
+            t = (frame - a.frame) / (b.frame - a.frame)
+            lerp = lambda u, v: tuple(float(x + t * (y - x)) for x, y in zip(u, v))  # noqa: E731
+            return type(render.camera)(position=lerp(a.position, b.position),
+                                       focal_point=lerp(a.focal_point, b.focal_point),
+                                       up=lerp(a.up, b.up), fov=a.fov + t * (b.fov - a.fov))
+    return keys[-1]
+
+
+class FrameRenderer:
+    """A plotter with the shot's static scene; render(frame) swaps in that frame's fluid."""
+
+    def __init__(self, spec):
+        _offscreen_env()
+        import pyvista as pv
+
+        self.pv = pv
+        self.spec = spec
+        r = spec.render
+        pl = pv.Plotter(off_screen=True, window_size=list(r.resolution), lighting="none")
+        if r.background_top is not None:
+            pl.set_background(r.background, top=r.background_top)
+        else:
+            pl.set_background(r.background)
+        self._lights(pl)
+        if r.ground:
+            self._ground(pl)
+        if r.colliders:
+            for mesh, col in collider_meshes(spec):
+                pl.add_mesh(mesh, color=col.color, pbr=True, metallic=0.0, roughness=0.6,
+                            smooth_shading=True)
+        if r.ssaa:
+            pl.enable_anti_aliasing("ssaa")
+        if r.material.opacity < 1.0:
+            pl.enable_depth_peeling(number_of_peels=8)
+        self.pl = pl
+        self.fluid_actors = []
+
+    def _lights(self, pl) -> None:
+        pv, r = self.pv, self.spec.render
+        lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
+        centre, size = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+        rig = r.lights or (
+            # key, fill and rim, placed around the domain
+            type("L", (), {"position": tuple(centre + size * np.array([1.2, 2.0, 1.5])), "intensity": 0.9,
+                           "color": (1.0, 0.97, 0.92)})(),
+            type("L", (), {"position": tuple(centre + size * np.array([-1.5, 0.8, 1.0])), "intensity": 0.35,
+                           "color": (0.85, 0.9, 1.0)})(),
+            type("L", (), {"position": tuple(centre + size * np.array([0.0, 1.5, -2.0])), "intensity": 0.5,
+                           "color": (1.0, 1.0, 1.0)})(),
+        )
+        for L in rig:
+            light = pv.Light(position=tuple(map(float, L.position)), focal_point=tuple(map(float, centre)),
+                             color=tuple(L.color), intensity=float(L.intensity), light_type="scene light")
+            pl.add_light(light)
+
+    def _ground(self, pl) -> None:
+        lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
+        centre = 0.5 * (lo + hi)
+        size = (hi - lo) * 3.0
+        plane = self.pv.Plane(center=(centre[0], lo[1] - 1e-4, centre[2]), direction=(0, 1, 0),
+                              i_size=size[0], j_size=size[2])
+        pl.add_mesh(plane, color=(0.42, 0.42, 0.44), pbr=True, roughness=0.9, metallic=0.0)
+
+    def _fluid_meshes(self, frame: int, paths):
+        pv, spec = self.pv, self.spec
+        out = []
+        if spec.render.mode == "particles":
+            data, attrs = read_frame(paths.sim_frame(frame))
+            cloud = pv.PolyData(data["position"].astype(np.float32))
+            if spec.render.color_by == "speed":
+                cloud["speed"] = np.linalg.norm(data["velocity"], axis=1)
+                out.append((cloud, dict(scalars="speed", cmap="viridis", clim=(0.0, spec.expected_max_speed()),
+                                        show_scalar_bar=False)))
+            else:
+                colours = np.array([f.color for f in spec.fluids], np.float32)[data["fluid"]]
+                cloud["rgb"] = (colours * 255).astype(np.uint8)
+                out.append((cloud, dict(scalars="rgb", rgb=True)))
+            for mesh, kw in out:
+                kw.update(render_points_as_spheres=True,
+                          point_size=max(2.0, self._pixels_per_metre() * 2 * spec.sim.particle_radius))
+            return out
+        from surfacing.reconstruct import read_mesh
+
+        mat = spec.render.material
+        for key, path in paths.surface_meshes(frame).items():
+            m = read_mesh(path)
+            if len(m.faces) == 0:
+                continue
+            poly = pv.PolyData(m.points, np.hstack([np.full((len(m.faces), 1), 3), m.faces]).ravel())
+            poly.point_data["Normals"] = m.normals
+            poly.point_data.active_normals_name = "Normals"
+            colour = mat.color or (spec.fluids[[f.name for f in spec.fluids].index(key)].color
+                                   if key is not None else spec.fluids[0].color)
+            out.append((poly, dict(color=colour, pbr=True, metallic=mat.metallic, roughness=mat.roughness,
+                                   opacity=mat.opacity, smooth_shading=True)))
+        return out
+
+    def _pixels_per_metre(self) -> float:
+        cam = self.spec.render.camera
+        dist = float(np.linalg.norm(np.subtract(cam.position, cam.focal_point)))
+        return self.spec.render.resolution[1] / (2 * dist * np.tan(np.radians(cam.fov) / 2))
+
+    def render(self, frame: int, paths) -> np.ndarray:
+        pl = self.pl
+        for actor in self.fluid_actors:
+            pl.remove_actor(actor, render=False)
+        self.fluid_actors = [pl.add_mesh(mesh, **kw) for mesh, kw in self._fluid_meshes(frame, paths)]
+        cam = camera_at(self.spec.render, frame)
+        pl.camera.position = cam.position
+        pl.camera.focal_point = cam.focal_point
+        pl.camera.up = cam.up
+        pl.camera.view_angle = cam.fov
+        pl.reset_camera_clipping_range()
+        return pl.screenshot(return_img=True)
+
+    def depth(self) -> np.ndarray:
+        return self.pl.get_image_depth(fill_value=np.nan)
+
+    def close(self) -> None:
+        self.pl.close()
+
+
+def collider_meshes(spec):
+    import pyvista as pv
+
+    out = []
+    for col in spec.colliders:
+        if col.mode == "container":
+            continue      # the inside of a container would hide the fluid
+        if col.type == "sphere":
+            m = pv.Sphere(radius=col.radius, center=col.center, theta_resolution=48, phi_resolution=48)
+        elif col.type == "box":
+            m = pv.Box(bounds=(col.min[0], col.max[0], col.min[1], col.max[1], col.min[2], col.max[2]))
+        else:
+            a, b = np.array(col.a), np.array(col.b)
+            axis = b - a
+            length = float(np.linalg.norm(axis))
+            parts = [pv.Sphere(radius=col.radius, center=tuple(a)), pv.Sphere(radius=col.radius, center=tuple(b))]
+            if length > 0:
+                parts.append(pv.Cylinder(center=tuple(0.5 * (a + b)), direction=tuple(axis / length),
+                                         radius=col.radius, height=length, resolution=48))
+            m = parts[0].merge(parts[1:])
+        out.append((m, col))
+    return out
+
+
+def save_png(final: Path, image: np.ndarray) -> Path:
+    from PIL import Image
+
+    with atomic_path(final) as tmp:
+        Image.fromarray(image).save(tmp, format="PNG")
+    return final
+
+
+def save_depth_png16(final: Path, depth: np.ndarray) -> Path:
+    """Depth pass as 16-bit PNG: 0 = near plane, 65534 = farthest hit, 65535 = background."""
+    from PIL import Image
+
+    d = np.asarray(depth, np.float64)
+    finite = np.isfinite(d)
+    out = np.full(d.shape, 65535, np.uint16)
+    if finite.any():
+        lo, hi = d[finite].min(), d[finite].max()
+        out[finite] = np.round((d[finite] - lo) / max(hi - lo, 1e-12) * 65534).astype(np.uint16)
+    with atomic_path(final) as tmp:
+        Image.fromarray(out).save(tmp, format="PNG")
+    return final
+
+
+def run(spec, frames, paths, progress) -> None:
+    try:
+        renderer = FrameRenderer(spec)
+    except Exception as exc:  # VTK raises plain RuntimeErrors for missing GL
+        raise StageError(f"render: cannot open an off-screen render window: {exc}") from None
+    try:
+        for frame in frames:
+            image = renderer.render(frame, paths)
+            written = [save_png(paths.render_frame(frame), image)]
+            if spec.render.depth == "png16":
+                written.append(save_depth_png16(paths.render_depth(frame), renderer.depth()))
+            progress.frame_done(frame, written)
+    finally:
+        renderer.close()
+
+
+def finalize(spec, paths, force: bool = False) -> list[Path]:
+    """Preview movie and contact sheet, once every frame of the shot is rendered."""
+    frames = list(spec.frames)
+    written = []
+    if spec.render.movie and (force or not paths.movie.exists()):
+        written.append(write_movie(paths.movie, [paths.render_frame(f) for f in frames], spec.shot.fps))
+    if spec.render.contact_sheet and (force or not paths.contact_sheet.exists()):
+        written.append(write_contact_sheet(paths.contact_sheet, [(f, paths.render_frame(f)) for f in frames]))
+    return written
+
+
+def write_movie(final: Path, images: list[Path], fps: float) -> Path:
+    """H.264 MP4 (yuv420p); odd widths or heights are padded by one pixel to be even."""
+    import imageio_ffmpeg
+    from PIL import Image
+
+    first = Image.open(images[0])
+    w, h = first.size
+    W, H = w + (w % 2), h + (h % 2)
+    with atomic_path(final) as tmp:
+        writer = imageio_ffmpeg.write_frames(str(tmp), (W, H), fps=fps, codec="libx264",
+                                             pix_fmt_out="yuv420p", macro_block_size=1,
+                                             output_params=["-f", "mp4", "-crf", "20"])
+        writer.send(None)
+        for p in images:
+            img = np.asarray(Image.open(p).convert("RGB"))
+            if (W, H) != (w, h):
+                img = np.pad(img, ((0, H - h), (0, W - w), (0, 0)), mode="edge")
+            writer.send(np.ascontiguousarray(img))
+        writer.close()
+    return final
+
+
+def contact_sheet_grid(n: int) -> tuple[int, int]:
+    """Columns and rows for n thumbnails: about 16:9 overall for 16:9 frames."""
+    cols = max(1, int(np.ceil(np.sqrt(n))))
+    rows = int(np.ceil(n / cols))
+    return cols, rows
+
+
+def write_contact_sheet(final: Path, frames: list[tuple[int, Path]], thumb_width: int = 240) -> Path:
+    from PIL import Image, ImageDraw
+
+    first = Image.open(frames[0][1])
+    tw = thumb_width
+    th = max(1, round(first.height * tw / first.width))
+    cols, rows = contact_sheet_grid(len(frames))
+    pad = 4
+    sheet = Image.new("RGB", (cols * (tw + pad) + pad, rows * (th + pad) + pad), (20, 20, 22))
+    draw = ImageDraw.Draw(sheet)
+    for k, (frame, path) in enumerate(frames):
+        x, y = pad + (k % cols) * (tw + pad), pad + (k // cols) * (th + pad)
+        sheet.paste(Image.open(path).convert("RGB").resize((tw, th), Image.LANCZOS), (x, y))
+        draw.rectangle((x, y, x + 34, y + 13), fill=(0, 0, 0))
+        draw.text((x + 3, y + 1), f"{frame:04d}", fill=(255, 255, 255))
+    with atomic_path(final) as tmp:
+        sheet.save(tmp, format="PNG")
+    return final

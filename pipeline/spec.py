@@ -1,0 +1,404 @@
+"""The shot job spec: one TOML file, validated once into one frozen object.
+
+Units: SI throughout (metres, seconds, kg/m^3, Pa s, N/m). The few lengths given in particle
+radii say so in their name's documentation and are converted once, in the properties at the
+bottom of :class:`ShotSpec`. Axes: y is up (Houdini's convention), so the default gravity is
+(0, -9.81, 0).
+
+Every key is documented in docs/jobspec.md.
+"""
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from .errors import SpecError
+
+Vec3 = tuple[float, float, float]
+Colour = tuple[
+    Annotated[float, Field(ge=0, le=1)],
+    Annotated[float, Field(ge=0, le=1)],
+    Annotated[float, Field(ge=0, le=1)],
+]
+Pos = Annotated[float, Field(gt=0)]
+NonNeg = Annotated[float, Field(ge=0)]
+Unit = Annotated[float, Field(ge=0, le=1)]
+
+
+class Strict(BaseModel):
+    """Unknown keys rejected, no type coercion (an int is accepted where a float is asked)."""
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+
+
+# --------------------------------------------------------------------------------------- shot
+class Shot(Strict):
+    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]*$", max_length=64)]
+    frame_start: Annotated[int, Field(ge=0, le=99999)] = 1
+    frame_end: Annotated[int, Field(ge=0, le=99999)] = 48
+    fps: Pos = 24.0
+    output: str = "shots"          # folder; relative paths are relative to the job file
+    version: Annotated[int, Field(ge=1, le=999)] = 1
+    checkpoint_every: Annotated[int, Field(ge=1)] = 10   # frames between full-state checkpoints
+
+    @model_validator(mode="after")
+    def _range(self):
+        if self.frame_end < self.frame_start:
+            raise ValueError(f"frame_end must be >= frame_start, got {self.frame_end} < {self.frame_start}")
+        return self
+
+
+# ---------------------------------------------------------------------------------------- sim
+class Kernels(Strict):
+    """Which smoothing kernel serves which term (Müller et al. 2003 by default)."""
+    density: Literal["poly6", "cubic", "wendland"] = "poly6"
+    pressure: Literal["spiky", "cubic", "wendland"] = "spiky"
+    viscosity: Literal["viscosity"] = "viscosity"
+    surface_tension: Literal["poly6"] = "poly6"
+
+
+class Sim(Strict):
+    backend: Literal["auto", "cpu", "cuda", "vulkan"] = "auto"
+    threads: Annotated[int, Field(ge=0)] = 0          # CPU threads, 0 = all cores
+    particle_radius: Pos = 0.01                      # m; lattice spacing is 2 radii
+    kernel_radius: Annotated[float, Field(gt=1, le=8)] = 4.0  # support h, in particle radii
+    gravity: Vec3 = (0.0, -9.81, 0.0)                # m/s^2, any constant acceleration
+    speed_of_sound: Annotated[float, Field(ge=0)] = 0.0  # m/s; 0 = 10x expected max speed
+    max_speed: Annotated[float, Field(ge=0)] = 0.0    # m/s expected; 0 = sqrt(2 g H) of the fluid
+    gamma: Pos = 7.0                                 # Tait exponent
+    cfl: Annotated[float, Field(gt=0, le=1)] = 0.4
+    max_dt: Pos = 1.0 / 240.0                        # s
+    surface_threshold: Pos = 0.4                     # |grad c| * h above which tension acts
+    max_density_ratio: Annotated[float, Field(gt=1)] = 1.5  # instability guard on rho/rho0
+    kernels: Kernels = Kernels()
+
+
+class Domain(Strict):
+    min: Vec3 = (0.0, 0.0, 0.0)
+    max: Vec3 = (1.0, 1.0, 1.0)
+    restitution: Unit = 0.0
+    friction: Unit = 0.1
+
+    @model_validator(mode="after")
+    def _extent(self):
+        for axis, lo, hi in zip("xyz", self.min, self.max):
+            if not hi > lo:
+                raise ValueError(f"max.{axis} must be > min.{axis}, got {hi} <= {lo}")
+        return self
+
+
+class Block(Strict):
+    min: Vec3
+    max: Vec3
+    velocity: Vec3 = (0.0, 0.0, 0.0)
+
+    @model_validator(mode="after")
+    def _extent(self):
+        for axis, lo, hi in zip("xyz", self.min, self.max):
+            if not hi > lo:
+                raise ValueError(f"max.{axis} must be > min.{axis}, got {hi} <= {lo}")
+        return self
+
+
+class Fluid(Strict):
+    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]+$")]
+    rest_density: Pos = 1000.0        # kg/m^3
+    viscosity: NonNeg = 1.0           # Pa s, Müller's particle-scale viscosity
+    surface_tension: NonNeg = 0.0     # N/m
+    color: Colour = (0.25, 0.5, 0.85)
+    blocks: Annotated[tuple[Block, ...], Field(min_length=1)]
+
+
+class Collider(Strict):
+    restitution: Unit = 0.0
+    friction: Unit = 0.2
+    mode: Literal["obstacle", "container"] = "obstacle"
+    color: Colour = (0.6, 0.6, 0.6)
+
+
+class SphereCollider(Collider):
+    type: Literal["sphere"]
+    center: Vec3
+    radius: Pos
+
+
+class BoxCollider(Collider):
+    type: Literal["box"]
+    min: Vec3
+    max: Vec3
+
+    @model_validator(mode="after")
+    def _extent(self):
+        for axis, lo, hi in zip("xyz", self.min, self.max):
+            if not hi > lo:
+                raise ValueError(f"max.{axis} must be > min.{axis}, got {hi} <= {lo}")
+        return self
+
+
+class CapsuleCollider(Collider):
+    type: Literal["capsule"]
+    a: Vec3
+    b: Vec3
+    radius: Pos
+
+
+AnyCollider = Annotated[Union[SphereCollider, BoxCollider, CapsuleCollider], Field(discriminator="type")]
+
+
+# ------------------------------------------------------------------------------------ surface
+class Surface(Strict):
+    cell_size: Annotated[float, Field(gt=0.1, le=4)] = 0.75   # grid spacing, in particle radii
+    kernel_radius: Annotated[float, Field(gt=1, le=8)] = 4.0  # splat support, in particle radii
+    iso: Annotated[float, Field(gt=0, lt=1)] = 0.5            # colour-field iso value
+    format: Literal["ply", "obj", "vtu"] = "ply"
+    per_fluid: bool = False               # one mesh per fluid instead of one for all
+    smoothing_iterations: Annotated[int, Field(ge=0, le=200)] = 0   # Taubin smoothing
+    decimate: Annotated[float, Field(ge=0, lt=1)] = 0.0           # fraction of triangles removed
+    half_width: Annotated[float, Field(ge=1, le=10)] = 3.0         # level-set narrow band, voxels
+
+
+# ------------------------------------------------------------------------------------- render
+class Camera(Strict):
+    position: Vec3 = (2.6, 1.6, 2.4)
+    focal_point: Vec3 = (0.8, 0.2, 0.0)
+    up: Vec3 = (0.0, 1.0, 0.0)
+    fov: Annotated[float, Field(gt=1, lt=179)] = 35.0   # vertical field of view, degrees
+
+
+class CameraKey(Camera):
+    frame: int
+
+
+class Light(Strict):
+    position: Vec3
+    intensity: Annotated[float, Field(ge=0)] = 1.0
+    color: Colour = (1.0, 1.0, 1.0)
+
+
+class Material(Strict):
+    color: Colour | None = None    # None: each fluid's own colour
+    roughness: Unit = 0.15
+    metallic: Unit = 0.0
+    opacity: Unit = 1.0
+
+
+class Render(Strict):
+    mode: Literal["surface", "particles"] = "surface"
+    color_by: Literal["fluid", "speed"] = "fluid"
+    resolution: tuple[Annotated[int, Field(ge=16, le=8192)], Annotated[int, Field(ge=16, le=8192)]] = (1280, 720)
+    camera: Camera = Camera()
+    camera_keys: tuple[CameraKey, ...] = ()     # optional keyframes, linearly interpolated
+    lights: tuple[Light, ...] = ()              # empty: a default three-point rig
+    material: Material = Material()
+    background: Colour = (0.08, 0.09, 0.11)
+    background_top: Colour | None = (0.32, 0.36, 0.42)   # None: flat background
+    ground: bool = True
+    colliders: bool = True
+    ssaa: bool = True
+    depth: Literal["none", "png16"] = "none"
+    movie: bool = True
+    contact_sheet: bool = True
+
+
+# --------------------------------------------------------------------------------------- shot
+class ShotSpec(Strict):
+    shot: Shot
+    sim: Sim = Sim()
+    domain: Domain = Domain()
+    fluids: Annotated[tuple[Fluid, ...], Field(min_length=1)]
+    colliders: tuple[AnyCollider, ...] = ()
+    surface: Surface = Surface()
+    render: Render = Render()
+    # Filled in by load_spec, not by users: where the job file lives, for relative paths.
+    job_dir: str = "."
+
+    @model_validator(mode="after")
+    def _cross_checks(self):
+        lo, hi = self.domain.min, self.domain.max
+        r = self.sim.particle_radius
+        for fi, fluid in enumerate(self.fluids):
+            for bi, block in enumerate(fluid.blocks):
+                for axis, a, b, dlo, dhi in zip("xyz", block.min, block.max, lo, hi):
+                    if a < dlo or b > dhi:
+                        raise ValueError(
+                            f"fluids[{fi}].blocks[{bi}]: block {axis} range [{a}, {b}] lies outside "
+                            f"the domain [{dlo}, {dhi}]")
+                    if b - a < 2 * r:
+                        raise ValueError(
+                            f"fluids[{fi}].blocks[{bi}]: block is thinner along {axis} ({b - a:g} m) than "
+                            f"one particle (2 x particle_radius = {2 * r:g} m)")
+        names = [f.name for f in self.fluids]
+        if len(set(names)) != len(names):
+            raise ValueError(f"fluids: names must be unique, got {names}")
+        h = self.sim.kernel_radius * r
+        for axis, a, b in zip("xyz", lo, hi):
+            if b - a < 2 * h:
+                raise ValueError(f"domain: extent along {axis} ({b - a:g} m) must be at least two kernel "
+                                 f"radii ({2 * h:g} m)")
+        keys = [k.frame for k in self.render.camera_keys]
+        if keys != sorted(set(keys)):
+            raise ValueError(f"render.camera_keys: frames must be strictly increasing, got {keys}")
+        return self
+
+    # ----------------------------------------------------------------- derived, converted once
+    @property
+    def frames(self) -> range:
+        return range(self.shot.frame_start, self.shot.frame_end + 1)
+
+    @property
+    def output_root(self) -> Path:
+        """<output>/<name>/v### — every file of this shot version lives below it."""
+        out = Path(self.shot.output)
+        if not out.is_absolute():
+            out = Path(self.job_dir) / out
+        return out / self.shot.name / f"v{self.shot.version:03d}"
+
+    def frame_time(self, frame: int) -> float:
+        """Simulated time (s) of a frame; frame_start is t = 0."""
+        return (frame - self.shot.frame_start) / self.shot.fps
+
+    @property
+    def smoothing_radius(self) -> float:
+        """Solver kernel support h in metres."""
+        return self.sim.kernel_radius * self.sim.particle_radius
+
+    @property
+    def surface_cell(self) -> float:
+        return self.surface.cell_size * self.sim.particle_radius
+
+    @property
+    def surface_support(self) -> float:
+        return self.surface.kernel_radius * self.sim.particle_radius
+
+    def hashed_sections(self, stage: str) -> dict[str, Any]:
+        """The spec keys a stage's output depends on (its own; upstream ones chain in the cache)."""
+        if stage == "sim":
+            return {"shot": {"frame_start": self.shot.frame_start, "fps": self.shot.fps},
+                    "sim": self.sim.model_dump(exclude={"backend", "threads"}),
+                    "domain": self.domain.model_dump(),
+                    "fluids": [f.model_dump() for f in self.fluids],
+                    "colliders": [c.model_dump() for c in self.colliders]}
+        if stage == "surface":
+            return {"surface": self.surface.model_dump()}
+        if stage == "render":
+            return {"render": self.render.model_dump()}
+        raise KeyError(stage)
+
+    def expected_max_speed(self) -> float:
+        """sqrt(2 g H) over the tallest fluid column, plus the fastest initial block speed."""
+        if self.sim.max_speed > 0:
+            return self.sim.max_speed
+        g = math.sqrt(sum(c * c for c in self.sim.gravity))
+        up = [-c / g for c in self.sim.gravity] if g > 0 else [0.0, 1.0, 0.0]
+        floor = sum(u * m for u, m in zip(up, self.domain.min))
+        top = max(sum(u * m for u, m in zip(up, b.max)) for f in self.fluids for b in f.blocks)
+        v0 = max(math.sqrt(sum(c * c for c in b.velocity)) for f in self.fluids for b in f.blocks)
+        return max(math.sqrt(2 * g * max(top - floor, 0.0)) + v0, 0.5)
+
+
+# ------------------------------------------------------------------------------------ loading
+def _tuples(value: Any) -> Any:
+    """TOML arrays become tuples, so the frozen model holds only immutable values."""
+    if isinstance(value, list):
+        return tuple(_tuples(v) for v in value)
+    if isinstance(value, dict):
+        return {k: _tuples(v) for k, v in value.items()}
+    return value
+
+
+def _dotted(loc: tuple) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        elif part in ("sphere", "box", "capsule") and out.startswith("colliders"):
+            continue  # pydantic's discriminator tag, not a key the user wrote
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "<root>"
+
+
+def _describe(err: dict) -> str:
+    where = _dotted(err["loc"])
+    got = err.get("input")
+    msg = err["msg"]
+    if err["type"] == "extra_forbidden":
+        return f"{where}: unknown key"
+    if err["type"] == "missing":
+        return f"{where}: required key is missing"
+    if err["type"] == "value_error":
+        msg = msg.removeprefix("Value error, ")
+        return f"{where}: {msg}" if where != "<root>" else msg
+    if isinstance(got, (dict, tuple)) and len(repr(got)) > 60:
+        got_s = type(got).__name__
+    else:
+        got_s = repr(got)
+    return f"{where}: expected {msg.removeprefix('Input should be ').rstrip('.')}, got {got_s}"
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """`key.path=value` with a TOML value (numbers, strings in quotes, arrays, booleans)."""
+    if "=" not in text:
+        raise SpecError("--set", [f"{text!r}: expected key.path=value"])
+    key, raw = text.split("=", 1)
+    key = key.strip()
+    if not key or any(not part for part in key.split(".")):
+        raise SpecError("--set", [f"{text!r}: expected key.path=value"])
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        # A bare word is taken as a string (--set render.mode=particles).
+        if raw.strip() and all(ch.isalnum() or ch in "_-./" for ch in raw.strip()):
+            value = raw.strip()
+        else:
+            raise SpecError("--set", [f"{key}: expected a TOML value, got {raw!r}"]) from None
+    return key.split("."), value
+
+
+def apply_override(data: dict, path: list[str], value: Any, text: str) -> None:
+    node: Any = data
+    for i, part in enumerate(path[:-1]):
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise SpecError("--set", [f"{'.'.join(path)}: index {part!r} out of range in {text!r}"])
+            node = node[int(part)]
+        else:
+            node = node.setdefault(part, {})
+        if not isinstance(node, (dict, list)):
+            raise SpecError("--set", [f"{'.'.join(path[:i + 1])}: is not a table in {text!r}"])
+    last = path[-1]
+    if isinstance(node, list):
+        if not last.isdigit() or int(last) >= len(node):
+            raise SpecError("--set", [f"{'.'.join(path)}: index {last!r} out of range in {text!r}"])
+        node[int(last)] = value
+    else:
+        node[last] = value
+
+
+def load_spec(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> ShotSpec:
+    """Read, override and validate a job file. Raises SpecError with one line per problem."""
+    path = Path(path)
+    source = str(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SpecError(source, ["job file not found"]) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SpecError(source, [f"cannot read job file: {exc.__class__.__name__}: {exc}"]) from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SpecError(source, [f"not valid TOML: {exc}"]) from None
+    if "job_dir" in data:
+        raise SpecError(source, ["job_dir: unknown key"])
+    for text_ in overrides:
+        keys, value = parse_override(text_)
+        apply_override(data, keys, value, text_)
+    data["job_dir"] = str(path.resolve().parent)
+    try:
+        return ShotSpec.model_validate(_tuples(data))
+    except ValidationError as exc:
+        raise SpecError(source, [_describe(e) for e in exc.errors()]) from None

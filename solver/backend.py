@@ -1,0 +1,55 @@
+"""Taichi start-up: the one place that calls ti.init (never at import time)."""
+from __future__ import annotations
+
+import glob
+import logging
+import os
+
+log = logging.getLogger("sphshot")
+_current: tuple | None = None
+_arch_name: str | None = None
+
+
+class BackendUnavailable(RuntimeError):
+    pass
+
+
+def _gpu_device_present() -> bool:
+    """A GPU's device node (NVIDIA, or a DRM render node for AMD/Intel) exists."""
+    return bool(glob.glob("/dev/nvidia[0-9]*") or glob.glob("/dev/dri/renderD*"))
+
+
+def init_taichi(backend: str = "auto", threads: int = 0) -> str:
+    """Start Taichi on `backend` (auto: CUDA, then Vulkan, then CPU); returns the arch used.
+
+    Re-initialises only when asked for another backend or thread count: arrays made before a
+    re-initialisation become invalid, so callers create their solver after this call.
+    """
+    global _current, _arch_name
+    os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+    import taichi as ti
+
+    want = (backend, threads)
+    if _current == want:
+        return _arch_name
+    order = {"auto": ["cuda", "vulkan", "cpu"], "cpu": ["cpu"], "cuda": ["cuda"], "vulkan": ["vulkan"]}[backend]
+    if backend == "auto" and not _gpu_device_present():
+        # Mesa's lavapipe is a Vulkan device too, but a software one: slower than Taichi's CPU path
+        order = ["cpu"]
+    n_threads = threads or os.cpu_count() or 1
+    chosen = None
+    for name in order:
+        arch = {"cuda": ti.cuda, "vulkan": ti.vulkan, "cpu": ti.cpu}[name]
+        ti.init(arch=arch, cpu_max_num_threads=n_threads, default_fp=ti.f32, default_ip=ti.i32,
+                log_level=ti.ERROR, random_seed=0, offline_cache=True)
+        got = ti.lang.impl.current_cfg().arch
+        if (name == "cpu" and got in (ti.x64, ti.arm64)) or got == arch:
+            chosen = name
+            break
+        ti.reset()
+    if chosen is None:
+        raise BackendUnavailable(f"sim.backend: {backend!r} is not available on this machine "
+                                 f"(expected one of {order}); use backend = \"auto\" or \"cpu\"")
+    _current, _arch_name = want, chosen
+    log.info("taichi backend: %s%s", chosen, f" ({n_threads} thread(s))" if chosen == "cpu" else "")
+    return chosen

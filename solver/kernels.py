@@ -1,0 +1,198 @@
+"""SPH smoothing kernels in 3D, all with compact support radius h (W = 0 for r >= h).
+
+Müller, Charypar & Gross 2003, "Particle-Based Fluid Simulation for Interactive Applications":
+  poly6      W = 315 / (64 pi h^9) (h^2 - r^2)^3                       (density, colour field)
+  spiky      W = 15 / (pi h^6) (h - r)^3, grad W = -45/(pi h^6)(h - r)^2 r_hat   (pressure)
+  viscosity  W = 15/(2 pi h^3)(-r^3/(2h^3) + r^2/h^2 + h/(2r) - 1), lap W = 45/(pi h^6)(h - r)
+Monaghan 1992 cubic spline, written with support h (q = r/h, sigma = 8 / (pi h^3)), and
+Wendland 1995 C2, W = 21/(2 pi h^3) (1 - q)^4 (1 + 4q).
+
+Each kernel exists twice: a Taichi function for the solver and surfacer, and a NumPy function
+for the tests and for tabulating boundary integrals. Kernel ids are compile-time constants.
+"""
+
+import math
+
+import numpy as np
+import taichi as ti
+
+POLY6, SPIKY, CUBIC, WENDLAND, VISCOSITY = 0, 1, 2, 3, 4
+DENSITY_KERNELS = {"poly6": POLY6, "cubic": CUBIC, "wendland": WENDLAND}
+PRESSURE_KERNELS = {"spiky": SPIKY, "cubic": CUBIC, "wendland": WENDLAND}
+PI = math.pi
+
+
+# ----------------------------------------------------------------------------------- Taichi
+@ti.func
+def w(kind: ti.template(), r: ti.f32, h: ti.f32) -> ti.f32:
+    """Kernel value W(r)."""
+    out = 0.0
+    if r < h:
+        q = r / h
+        if ti.static(kind == POLY6):
+            d = h * h - r * r
+            out = 315.0 / (64.0 * PI * h ** 9) * d * d * d
+        elif ti.static(kind == SPIKY):
+            d = h - r
+            out = 15.0 / (PI * h ** 6) * d * d * d
+        elif ti.static(kind == CUBIC):
+            s = 8.0 / (PI * h * h * h)
+            if q <= 0.5:
+                out = s * (6.0 * (q * q * q - q * q) + 1.0)
+            else:
+                out = s * 2.0 * (1.0 - q) ** 3
+        elif ti.static(kind == WENDLAND):
+            s = 21.0 / (2.0 * PI * h * h * h)
+            out = s * (1.0 - q) ** 4 * (1.0 + 4.0 * q)
+    return out
+
+
+@ti.func
+def dw(kind: ti.template(), r: ti.f32, h: ti.f32) -> ti.f32:
+    """Radial derivative dW/dr (<= 0); grad W = dW/dr * r_vec / r."""
+    out = 0.0
+    if r < h:
+        q = r / h
+        if ti.static(kind == POLY6):
+            d = h * h - r * r
+            out = -945.0 / (32.0 * PI * h ** 9) * d * d * r
+        elif ti.static(kind == SPIKY):
+            d = h - r
+            out = -45.0 / (PI * h ** 6) * d * d
+        elif ti.static(kind == CUBIC):
+            s = 8.0 / (PI * h * h * h)
+            if q <= 0.5:
+                out = s / h * 6.0 * (3.0 * q * q - 2.0 * q)
+            else:
+                out = -s / h * 6.0 * (1.0 - q) ** 2
+        elif ti.static(kind == WENDLAND):
+            s = 21.0 / (2.0 * PI * h * h * h)
+            out = -s / h * 20.0 * q * (1.0 - q) ** 3
+    return out
+
+
+@ti.func
+def grad_w(kind: ti.template(), rv, r: ti.f32, h: ti.f32):
+    """grad_i W(x_i - x_j) for rv = x_i - x_j, r = |rv| > 0."""
+    return dw(kind, r, h) / r * rv
+
+
+@ti.func
+def lap_viscosity(r: ti.f32, h: ti.f32) -> ti.f32:
+    """Laplacian of Müller's viscosity kernel, 45 / (pi h^6) (h - r)."""
+    out = 0.0
+    if r < h:
+        out = 45.0 / (PI * h ** 6) * (h - r)
+    return out
+
+
+@ti.func
+def lap_poly6(r: ti.f32, h: ti.f32) -> ti.f32:
+    """Laplacian of poly6, -945/(32 pi h^9) (h^2 - r^2)(3h^2 - 7r^2); used for colour-field curvature."""
+    out = 0.0
+    if r < h:
+        d = h * h - r * r
+        out = -945.0 / (32.0 * PI * h ** 9) * d * (3.0 * h * h - 7.0 * r * r)
+    return out
+
+
+# ------------------------------------------------------------------------------------ NumPy
+def w_np(kind: int, r, h: float):
+    r = np.asarray(r, dtype=np.float64)
+    q = r / h
+    inside = r < h
+    if kind == POLY6:
+        out = 315.0 / (64.0 * PI * h ** 9) * (h * h - r * r) ** 3
+    elif kind == SPIKY:
+        out = 15.0 / (PI * h ** 6) * (h - r) ** 3
+    elif kind == CUBIC:
+        s = 8.0 / (PI * h ** 3)
+        out = np.where(q <= 0.5, s * (6.0 * (q ** 3 - q ** 2) + 1.0), s * 2.0 * (1.0 - q) ** 3)
+    elif kind == WENDLAND:
+        out = 21.0 / (2.0 * PI * h ** 3) * (1.0 - q) ** 4 * (1.0 + 4.0 * q)
+    elif kind == VISCOSITY:
+        rr = np.maximum(r, 1e-12)
+        out = 15.0 / (2.0 * PI * h ** 3) * (-rr ** 3 / (2 * h ** 3) + rr ** 2 / h ** 2 + h / (2 * rr) - 1.0)
+    else:
+        raise ValueError(kind)
+    return np.where(inside, out, 0.0)
+
+
+def dw_np(kind: int, r, h: float):
+    r = np.asarray(r, dtype=np.float64)
+    q = r / h
+    inside = r < h
+    if kind == POLY6:
+        out = -945.0 / (32.0 * PI * h ** 9) * (h * h - r * r) ** 2 * r
+    elif kind == SPIKY:
+        out = -45.0 / (PI * h ** 6) * (h - r) ** 2
+    elif kind == CUBIC:
+        s = 8.0 / (PI * h ** 3)
+        out = np.where(q <= 0.5, s / h * 6.0 * (3 * q * q - 2 * q), -s / h * 6.0 * (1.0 - q) ** 2)
+    elif kind == WENDLAND:
+        out = -21.0 / (2.0 * PI * h ** 3) / h * 20.0 * q * (1.0 - q) ** 3
+    else:
+        raise ValueError(kind)
+    return np.where(inside, out, 0.0)
+
+
+def lattice_number_density(kind: int, h: float, spacing: float) -> float:
+    """sum_j W(x_i - x_j) over a cubic lattice of the given spacing, self included.
+
+    Setting each particle's mass to rho0 / this sum makes a particle inside a lattice-filled
+    block start exactly at rest density.
+    """
+    n = int(math.ceil(h / spacing)) + 1
+    ax = np.arange(-n, n + 1) * spacing
+    x, y, z = np.meshgrid(ax, ax, ax, indexing="ij")
+    return float(w_np(kind, np.sqrt(x * x + y * y + z * z), h).sum())
+
+
+def ghost_tables(density_kind: int, pressure_kind: int, h: float, radius: float, n: int = 25):
+    """Boundary sums for walls, consistent with the fill lattice (spacing d = 2 radius).
+
+    A particle at distance a from a plane wall misses the fluid that a mirrored lattice would put
+    beyond it: layers at a + r + i d (i >= 0) along the normal, the particle's own lattice in the
+    plane. For the box, with distances (a, b, c) to the nearest wall along each axis:
+        H(a)       = sum_{i >= 0; j, k in Z} W(a + r + i d, j d, k d)          half-space
+        Q(a, b)    = sum_{i, j >= 0; k in Z} W(a + r + i d, b + r + j d, k d)  quarter-space (edge)
+        O(a, b, c) = sum_{i, j, k >= 0}      W(a + r + i d, ...)               octant (corner)
+    and the missing sum is H(a) + H(b) + H(c) - Q(a,b) - Q(a,c) - Q(b,c) + O(a,b,c) by
+    inclusion-exclusion. The same sums of |dW/dr| x/r give the normal gradient (first argument
+    is the component's axis). A block filled on the lattice therefore starts at exactly rest
+    density at walls, edges and corners. Distances are sampled on [0, h]; at h every sum is 0.
+
+    Returns two (3, n, n, n) arrays, [H, Q, O] for density and for the gradient, where H ignores
+    its 2nd and 3rd index and Q its 3rd.
+    """
+    d = 2.0 * radius
+    m = int(math.ceil(h / d)) + 1
+    a = np.linspace(0.0, h, n)
+    beyond = r0 = radius + d * np.arange(m)            # offsets of ghost layers past the wall
+    inplane = d * np.arange(-m, m + 1)
+    del r0
+
+    def sums(X, Y, Z):
+        R = np.sqrt(X * X + Y * Y + Z * Z)
+        wv = w_np(density_kind, R, h)
+        gv = np.abs(dw_np(pressure_kind, R, h)) * X / np.maximum(R, 1e-30)
+        return wv.sum(axis=(-3, -2, -1)), gv.sum(axis=(-3, -2, -1))
+
+    A = a[:, None, None, None, None, None]
+    B = a[None, :, None, None, None, None]
+    C = a[None, None, :, None, None, None]
+    ii = beyond[None, None, None, :, None, None]
+    # H: only the first distance matters
+    hx = (a[:, None, None, None] + beyond[None, :, None, None])
+    Hd, Hg = sums(hx, inplane[None, None, :, None], inplane[None, None, None, :])
+    # Q: two distances
+    qx = a[:, None, None, None, None] + beyond[None, None, :, None, None]
+    qy = a[None, :, None, None, None] + beyond[None, None, None, :, None]
+    Qd, Qg = sums(qx, qy, inplane[None, None, None, None, :])
+    # O: three distances
+    Od, Og = sums(A + ii, B + beyond[None, None, None, None, :, None], C + beyond[None, None, None, None, None, :])
+    dens = np.stack([np.broadcast_to(Hd[:, None, None], (n, n, n)),
+                     np.broadcast_to(Qd[:, :, None], (n, n, n)), Od])
+    grad = np.stack([np.broadcast_to(Hg[:, None, None], (n, n, n)),
+                     np.broadcast_to(Qg[:, :, None], (n, n, n)), Og])
+    return dens.astype(np.float32), grad.astype(np.float32)

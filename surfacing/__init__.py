@@ -1,0 +1,1 @@
+"""Surfacing: particles to colour field, OpenVDB grids and marching-cubes meshes."""
