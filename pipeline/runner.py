@@ -16,7 +16,8 @@ def plan_stage(spec: ShotSpec, paths: ShotPaths, stage: str, frames: list[int], 
     if sc.stale and not force:
         raise StaleCacheError(
             f"{stage}: frame(s) {format_frames(sc.stale)} in {paths.stage_dir(stage)} were made with "
-            f"other parameters; rerun with --force to recompute, or raise shot.version to keep both")
+            f"other parameters; rerun with --stage {stage} --force to recompute them, or raise "
+            f"shot.version to keep both")
     if force:
         return list(frames)
     return list(sc.missing)

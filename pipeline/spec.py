@@ -401,4 +401,9 @@ def load_spec(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> 
     try:
         return ShotSpec.model_validate(_tuples(data))
     except ValidationError as exc:
-        raise SpecError(source, [_describe(e) for e in exc.errors()]) from None
+        errs = exc.errors()
+        # a failed item also fails its parent's length check; report the item only
+        locs = [tuple(e["loc"]) for e in errs]
+        errs = [e for e in errs if not any(len(o) > len(e["loc"]) and o[:len(e["loc"])] == tuple(e["loc"])
+                                           for o in locs)]
+        raise SpecError(source, list(dict.fromkeys(_describe(e) for e in errs))) from None

@@ -27,6 +27,7 @@ def init_taichi(backend: str = "auto", threads: int = 0) -> str:
     """
     global _current, _arch_name
     os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+    os.environ.setdefault("TI_LOG_LEVEL", "error")
     import taichi as ti
 
     want = (backend, threads)

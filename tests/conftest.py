@@ -1,0 +1,48 @@
+"""Shared fixtures: small copies of the example jobs, run in a temporary folder."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+JOBS = sorted((ROOT / "jobs").glob("*.toml"))
+
+# Small overrides that turn any example job into a seconds-long test shot.
+SMALL = ["sim.particle_radius=0.02", "shot.frame_end=6", "shot.checkpoint_every=2",
+         "render.resolution=[160,90]", "render.ssaa=false", "sim.threads=1"]
+
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+os.environ.pop("DISPLAY", None)   # every test renders headless, as on a farm node
+
+
+@pytest.fixture
+def job_copy(tmp_path):
+    """Copy a job file into tmp_path with its output redirected to tmp_path/out."""
+    def make(name: str = "dambreak.toml") -> Path:
+        dst = tmp_path / name
+        text = (ROOT / "jobs" / name).read_text()
+        dst.write_text(text)
+        return dst
+    return make
+
+
+def sphshot(*args, check=False, timeout=600, env=None) -> subprocess.CompletedProcess:
+    """Run the real console entry point in a subprocess (what a farm node runs)."""
+    cmd = [sys.executable, "-m", "pipeline.cli", *map(str, args)]
+    e = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=e)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{cmd} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+def small(*extra: str) -> list[str]:
+    out = []
+    for kv in [*SMALL, "shot.output=\"out\"", *extra]:
+        out += ["--set", kv]
+    return out

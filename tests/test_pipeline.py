@@ -1,0 +1,171 @@
+"""Cache, invalidation and resume through the real CLI, on a small dam break."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import pytest
+
+from conftest import ROOT, small, sphshot
+from pipeline import cache
+from pipeline.spec import load_spec
+
+pytestmark = pytest.mark.slow
+
+
+def mtimes(folder: Path) -> dict[str, int]:
+    return {p.name: p.stat().st_mtime_ns for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def shot(tmp_path_factory):
+    """One small shot run through every stage; tests below work on copies or read only."""
+    d = tmp_path_factory.mktemp("shot")
+    job = d / "dambreak.toml"
+    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    proc = sphshot("run", job, *small(), check=True)
+    return job, proc
+
+
+def test_full_run_writes_every_frame(shot):
+    job, proc = shot
+    spec = load_spec(job, [s for s in small() if s != "--set"])
+    paths = cache.ShotPaths.for_spec(spec)
+    for stage in cache.STAGES:
+        sc = cache.scan(spec, paths, stage, spec.frames)
+        assert sc.valid == tuple(spec.frames), f"{stage}: {sc}"
+    with h5py.File(paths.sim_frame(3)) as f:
+        assert f["position"].shape[1] == 3 and f["position"].dtype == "float32"
+        for name in ("velocity", "density", "pressure", "id", "fluid"):
+            assert name in f
+        assert f.attrs["frame"] == 3
+        assert abs(f.attrs["time"] - 2 / 24) < 1e-9
+    assert paths.movie.exists() and paths.contact_sheet.exists()
+    # farm-manager lines: progress and one OUTPUT_FILE per published file
+    assert "ALF_PROGRESS 100%" in proc.stdout
+    assert f"OUTPUT_FILE:{paths.render_frame(6)};" in proc.stdout
+
+
+def test_second_run_does_no_work(shot):
+    job, _ = shot
+    spec = load_spec(job, [s for s in small() if s != "--set"])
+    root = spec.output_root
+    before = {s: mtimes(root / s) for s in ("sim", "surface", "render", "checkpoints")}
+    proc = sphshot("run", job, *small(), check=True)
+    for stage in cache.STAGES:
+        assert f"sphshot: {stage}: all 6 frame(s) valid, nothing to do" in proc.stdout
+    after = {s: mtimes(root / s) for s in before}
+    assert after == before, "a second run rewrote files"
+
+
+def test_render_key_change_leaves_sim_and_surface_valid(shot, tmp_path):
+    job, _ = shot
+    args = small()
+    spec = load_spec(job, [s for s in args if s != "--set"])
+    root = spec.output_root
+    sim_before, surf_before = mtimes(root / "sim"), mtimes(root / "surface")
+    changed = [*args, "--set", "render.background=[0.5,0.1,0.1]"]
+    refused = sphshot("run", job, *changed)
+    assert refused.returncode == 3, refused.stderr
+    assert "render: frame(s) 1-6" in refused.stderr and "--stage render --force" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1
+    status = sphshot("status", job, *changed, check=True).stdout
+    assert "sim      valid    6" in status and "surface  valid    6" in status
+    assert "render   valid    0  missing    0  stale    6" in status
+    forced = sphshot("run", job, *changed, "--stage", "render", "--force", check=True)
+    assert "sphshot: render: 6 frame(s) in" in forced.stdout
+    # and the whole shot is now valid again without touching sim or surface
+    again = sphshot("run", job, *changed, check=True)
+    for stage in cache.STAGES:
+        assert f"sphshot: {stage}: all 6 frame(s) valid, nothing to do" in again.stdout
+    assert mtimes(root / "sim") == sim_before and mtimes(root / "surface") == surf_before
+
+
+def test_surface_waits_on_missing_sim_frames(tmp_path):
+    job = tmp_path / "dambreak.toml"
+    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    proc = sphshot("run", job, *small(), "--stage", "surface", "--frames", "3-4")
+    assert proc.returncode == 4, proc.stderr
+    assert "waiting on sim frame 3" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def _all_final_files_complete(root: Path) -> int:
+    """Every file under a final name opens and holds its datasets; returns how many."""
+    n = 0
+    for folder in ("sim", "checkpoints"):
+        for p in (root / folder).glob("*.h5"):
+            with h5py.File(p, "r") as f:
+                assert f["position"].shape[0] > 0, p
+                assert "velocity" in f and "id" in f, p
+            n += 1
+    return n
+
+
+def test_sigkill_resumes_from_checkpoint(tmp_path):
+    """Kill the sim with SIGKILL part-way; rerun resumes from the last checkpoint, never frame 1."""
+    job = tmp_path / "dambreak.toml"
+    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    args = small("shot.frame_end=24", "shot.checkpoint_every=3")
+    spec = load_spec(job, [s for s in args if s != "--set"])
+    paths = cache.ShotPaths.for_spec(spec)
+    cmd = [sys.executable, "-m", "pipeline.cli", "run", str(job), "--stage", "sim", *args]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    deadline = time.time() + 300
+    try:
+        while time.time() < deadline:
+            if any(c >= 7 for c in paths.checkpoints()):
+                break
+            assert proc.poll() is None, "the sim finished before it could be killed; make it longer"
+            time.sleep(0.05)
+        else:
+            pytest.fail("no checkpoint at frame >= 7 within 300 s")
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    killed_at = max(paths.checkpoints())
+    assert killed_at < 24
+    assert _all_final_files_complete(spec.output_root) > 0
+    early = {f: paths.sim_frame(f).stat().st_mtime_ns for f in range(1, killed_at + 1)
+             if paths.sim_frame(f).exists()}
+    rerun = sphshot("run", job, "--stage", "sim", *args, check=True)
+    first_missing = min(f for f in spec.frames if f not in early)
+    resumed = max(c for c in paths.checkpoints() if c < first_missing) if early else 1
+    assert f"sim: resuming from checkpoint at frame {resumed}" in rerun.stderr
+    assert resumed > 1, "resumed from the beginning"
+    assert cache.scan(spec, paths, "sim", spec.frames).valid == tuple(spec.frames)
+    assert {f: paths.sim_frame(f).stat().st_mtime_ns for f in early} == early, "frames before the kill were rewritten"
+    assert _all_final_files_complete(spec.output_root) >= 24
+    leftovers = list((spec.output_root / "sim").glob(".*.tmp")) + list(paths.checkpoint_dir.glob(".*.tmp"))
+    assert leftovers == [], f"temporary files left behind: {leftovers}"
+
+
+def test_atomic_path_never_publishes_a_partial_file(tmp_path):
+    final = tmp_path / "f.0001.h5"
+    with pytest.raises(RuntimeError):
+        with cache.atomic_path(final) as tmp:
+            tmp.write_bytes(b"half")
+            raise RuntimeError("killed")
+    assert not final.exists() and list(tmp_path.iterdir()) == []
+    with cache.atomic_path(final) as tmp:
+        tmp.write_bytes(b"whole")
+    assert final.read_bytes() == b"whole"
+    assert [p.name for p in tmp_path.iterdir()] == ["f.0001.h5"]
+
+
+def test_dead_temporaries_are_removed_but_live_ones_kept(tmp_path):
+    dead = tmp_path / f".a.0001.h5.{cache._HOST}-999999999.tmp"
+    live = tmp_path / f".a.0002.h5.{cache._HOST}-{os.getppid()}.tmp"
+    other_host = tmp_path / ".a.0003.h5.otherhost-1.tmp"
+    for p in (dead, live, other_host):
+        p.write_text("x")
+    assert cache.remove_dead_temporaries(tmp_path) == 1
+    assert not dead.exists() and live.exists() and other_host.exists()

@@ -1,0 +1,126 @@
+"""Every user error: exit 2, one line naming the key or file and what was expected, no
+traceback, and nothing written."""
+from __future__ import annotations
+
+import pytest
+
+from pipeline.cli import main
+from pipeline.spec import load_spec
+
+GOOD = """
+[shot]
+name = "t"
+frame_start = 1
+frame_end = 4
+output = "out"
+
+[sim]
+particle_radius = 0.02
+
+[domain]
+min = [0.0, 0.0, 0.0]
+max = [1.0, 0.6, 0.4]
+
+[[fluids]]
+name = "water"
+[[fluids.blocks]]
+min = [0.0, 0.0, 0.0]
+max = [0.3, 0.3, 0.4]
+"""
+
+# (case id, job text transform or override list, CLI extra args, text the one line must contain)
+CORPUS = [
+    ("unknown-top-key", GOOD + "\n[extra]\nx = 1\n", [], "extra: unknown key"),
+    ("unknown-nested-key", GOOD.replace("particle_radius = 0.02", "particle_radius = 0.02\nradius = 1"),
+     [], "sim.radius: unknown key"),
+    ("wrong-type-string-for-float", GOOD.replace("particle_radius = 0.02", 'particle_radius = "0.02"'),
+     [], "sim.particle_radius: expected a valid number"),
+    ("negative-radius", GOOD.replace("particle_radius = 0.02", "particle_radius = -0.01"),
+     [], "sim.particle_radius: expected greater than 0"),
+    ("zero-fps", GOOD.replace('output = "out"', 'output = "out"\nfps = 0'), [], "shot.fps: expected greater than 0"),
+    ("inverted-frame-range", GOOD.replace("frame_end = 4", "frame_end = 0"), [],
+     "shot: frame_end must be >= frame_start, got 0 < 1"),
+    ("block-outside-domain", GOOD.replace("max = [0.3, 0.3, 0.4]", "max = [0.3, 0.3, 0.9]"), [],
+     "block z range [0.0, 0.9] lies outside the domain"),
+    ("inverted-domain", GOOD.replace("max = [1.0, 0.6, 0.4]", "max = [1.0, -0.6, 0.4]"), [],
+     "domain: max.y must be > min.y"),
+    ("vector-too-short", GOOD.replace("min = [0.0, 0.0, 0.0]\nmax = [1.0", "min = [0.0, 0.0]\nmax = [1.0", 1), [],
+     "domain.min[2]: required key is missing"),
+    ("missing-fluids", GOOD.split("[[fluids]]")[0], [], "fluids: required key is missing"),
+    ("missing-shot-name", GOOD.replace('name = "t"\n', "", 1), [], "shot.name: required key is missing"),
+    ("bad-shot-name", GOOD.replace('name = "t"', 'name = "my shot/1"', 1), [], "shot.name: expected"),
+    ("bad-backend", GOOD.replace("particle_radius = 0.02", 'particle_radius = 0.02\nbackend = "metal"'), [],
+     "sim.backend: expected 'auto', 'cpu', 'cuda' or 'vulkan'"),
+    ("bad-collider-type", GOOD + '\n[[colliders]]\ntype = "torus"\n', [], "colliders[0]"),
+    ("collider-missing-radius", GOOD + '\n[[colliders]]\ntype = "sphere"\ncenter = [0.5, 0.0, 0.2]\n', [],
+     "colliders[0].radius: required key is missing"),
+    ("colour-out-of-range", GOOD.replace('name = "water"', 'name = "water"\ncolor = [0.2, 2.0, 0.5]'), [],
+     "fluids[0].color[1]: expected less than or equal to 1"),
+    ("unreadable-toml", GOOD.replace("[sim]", "[sim"), [], "not valid TOML"),
+    ("missing-file", None, [], "job file not found"),
+    ("bad-set-syntax", GOOD, ["--set", "sim.particle_radius"], "expected key.path=value"),
+    ("bad-set-value", GOOD, ["--set", "sim.particle_radius=[1,"], "sim.particle_radius: expected a TOML value"),
+    ("bad-set-type", GOOD, ["--set", "shot.frame_end=\"ten\""], "shot.frame_end: expected a valid integer"),
+    ("set-unknown-key", GOOD, ["--set", "sim.radius=0.1"], "sim.radius: unknown key"),
+    ("bad-frame-range", GOOD, ["--frames", "3-2"], "--frames: range end must be >= start, got 3-2"),
+    ("frame-outside-shot", GOOD, ["--frames", "1-9"], "--frames: frame 5 is outside the shot's range 1-4"),
+    ("garbage-frames", GOOD, ["--frames", "one-two"], "--frames: expected A, A-B or A-BxSTEP"),
+    ("bad-stage", GOOD, ["--stage", "comp"], "argument --stage: invalid choice: 'comp'"),
+    ("kernel-too-small", GOOD.replace("particle_radius = 0.02", "particle_radius = 0.02\nkernel_radius = 0.5"), [],
+     "sim.kernel_radius: expected greater than 1"),
+]
+
+
+@pytest.mark.parametrize("case,text,extra,expect", CORPUS, ids=[c[0] for c in CORPUS])
+@pytest.mark.parametrize("command", ["validate", "run"])
+def test_user_error(tmp_path, capsys, case, text, extra, expect, command):
+    job = tmp_path / "job.toml"
+    if text is not None:
+        job.write_text(text)
+    if command == "validate" and any(a in extra for a in ("--frames", "--stage")):
+        pytest.skip("validate takes no frame range or stage")
+    code = main([command, str(job), *extra])
+    out, err = capsys.readouterr()
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 2, f"{case}: expected exit 2, got {code}; stderr={err!r}"
+    assert len(lines) == 1, f"{case}: expected one line on stderr, got {lines}"
+    assert "Traceback" not in err + out
+    assert expect in lines[0], f"{case}: expected {expect!r} in {lines[0]!r}"
+    assert lines[0].startswith("sphshot: error:")
+    # the line names where the problem is: the job file, or the command-line option
+    assert any(s in lines[0] for s in (str(job), "--set", "--frames", "argument --stage")), \
+        f"{case}: the line should name the job file or the option: {lines[0]!r}"
+    assert not (tmp_path / "out").exists(), f"{case}: something was written"
+
+
+def test_corpus_is_large_enough():
+    assert len(CORPUS) >= 20
+
+
+def test_good_job_validates(tmp_path, capsys):
+    job = tmp_path / "job.toml"
+    job.write_text(GOOD)
+    assert main(["validate", str(job)]) == 0
+    assert "ok" in capsys.readouterr().out
+    assert not (tmp_path / "out").exists()
+
+
+def test_set_overrides_and_spec_is_frozen(tmp_path):
+    job = tmp_path / "job.toml"
+    job.write_text(GOOD)
+    spec = load_spec(job, ["sim.particle_radius=0.03", "fluids.0.viscosity=2.5", "render.mode=particles"])
+    assert spec.sim.particle_radius == 0.03
+    assert spec.fluids[0].viscosity == 2.5
+    assert spec.render.mode == "particles"
+    assert spec.output_root == tmp_path / "out" / "t" / "v001"
+    with pytest.raises(Exception):
+        spec.sim.particle_radius = 1.0   # frozen
+
+
+def test_help_documents_exit_codes(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for code in ("0", "1", "2", "3", "4", "5"):
+        assert f"\n  {code}  " in out
