@@ -1,7 +1,9 @@
 """Taichi start-up: the one place that calls ti.init (never at import time)."""
 from __future__ import annotations
 
+import contextlib
 import glob
+import io
 import logging
 import os
 
@@ -41,8 +43,9 @@ def init_taichi(backend: str = "auto", threads: int = 0) -> str:
     chosen = None
     for name in order:
         arch = {"cuda": ti.cuda, "vulkan": ti.vulkan, "cpu": ti.cpu}[name]
-        ti.init(arch=arch, cpu_max_num_threads=n_threads, default_fp=ti.f32, default_ip=ti.i32,
-                log_level=ti.ERROR, random_seed=0, offline_cache=True)
+        with contextlib.redirect_stdout(io.StringIO()):   # ti.init prints "Starting on arch=..."
+            ti.init(arch=arch, cpu_max_num_threads=n_threads, default_fp=ti.f32, default_ip=ti.i32,
+                    log_level=ti.ERROR, random_seed=0, offline_cache=True)
         got = ti.lang.impl.current_cfg().arch
         if (name == "cpu" and got in (ti.x64, ti.arm64)) or got == arch:
             chosen = name

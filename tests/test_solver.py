@@ -1,0 +1,262 @@
+"""Solver physics against analytics and invariants, at small particle counts."""
+
+import numpy as np
+import pytest
+
+from pipeline.spec import ShotSpec
+from solver import kernels as K
+from solver.backend import init_taichi
+
+ALL = {"poly6": K.POLY6, "spiky": K.SPIKY, "cubic": K.CUBIC, "wendland": K.WENDLAND,
+       "viscosity": K.VISCOSITY}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def taichi_cpu():
+    init_taichi("cpu", 1)
+
+
+def make_solver(spec_dict, mutate=None):
+    from solver.sph import SolverConfig, SPHSolver, fill_blocks
+
+    spec = ShotSpec.model_validate(spec_dict)
+    cfg = SolverConfig.from_spec(spec)
+    state = fill_blocks(spec)
+    if mutate:
+        mutate(state)
+    return spec, cfg, SPHSolver(cfg, state)
+
+
+def radial_integral(f, h, n=200001):
+    r = np.linspace(0.0, h, n)
+    return np.trapz(4 * np.pi * r * r * f(r), r)
+
+
+# --------------------------------------------------------------------------------- kernels
+@pytest.mark.parametrize("name", list(ALL))
+def test_kernel_integrates_to_one(name):
+    """Each kernel's 3D normalisation: the integral over its support is 1 (quadrature to 1e-3)."""
+    h = 0.037
+    total = radial_integral(lambda r: K.w_np(ALL[name], r, h), h)
+    assert abs(total - 1.0) < 1e-3, f"{name}: integral {total}"
+
+
+@pytest.mark.parametrize("name", ["poly6", "spiky", "cubic", "wendland"])
+def test_taichi_kernels_match_numpy_and_gradients_are_odd(name):
+    import taichi as ti
+
+    kind, h = ALL[name], 0.05
+    rng = np.random.default_rng(1)
+    vecs = rng.uniform(-h, h, size=(256, 3)).astype(np.float32)
+    vin = ti.Vector.ndarray(3, ti.f32, 256)
+    vin.from_numpy(vecs)
+    wout = ti.ndarray(ti.f32, 256)
+    gpos = ti.Vector.ndarray(3, ti.f32, 256)
+    gneg = ti.Vector.ndarray(3, ti.f32, 256)
+
+    @ti.kernel
+    def evaluate(v: ti.types.ndarray(dtype=ti.math.vec3, ndim=1), w: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                 gp: ti.types.ndarray(dtype=ti.math.vec3, ndim=1), gn: ti.types.ndarray(dtype=ti.math.vec3, ndim=1)):
+        for i in v:
+            r = v[i].norm()
+            w[i] = K.w(kind, r, h)
+            gp[i] = K.grad_w(kind, v[i], r, h)
+            gn[i] = K.grad_w(kind, -v[i], r, h)
+
+    evaluate(vin, wout, gpos, gneg)
+    r = np.linalg.norm(vecs, axis=1)
+    np.testing.assert_allclose(wout.to_numpy(), K.w_np(kind, r, h), rtol=2e-5, atol=1e-3 * K.w_np(kind, 0.0, h))
+    # grad W(-r) = -grad W(r): exactly, since the kernels are radial
+    np.testing.assert_array_equal(gpos.to_numpy(), -gneg.to_numpy())
+    # and the gradient is dW/dr along r_hat, matching the NumPy derivative
+    expect = (K.dw_np(kind, r, h) / r)[:, None] * vecs
+    np.testing.assert_allclose(gpos.to_numpy(), expect, rtol=1e-4, atol=1e-4 * np.abs(expect).max())
+
+
+def test_ghost_tables_give_rest_density_at_walls_edges_and_corners():
+    """A block filled on the lattice into a corner of the domain starts at rest density
+    everywhere it touches a wall (the boundary sums complete the lattice)."""
+    spec, cfg, s = make_solver({
+        "shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
+        "domain": {"min": (0, 0, 0), "max": (0.3, 0.3, 0.3)},
+        "fluids": ({"name": "w", "blocks": ({"min": (0, 0, 0), "max": (0.16, 0.16, 0.16)},)},)})
+    d = s.snapshot()
+    p = d["position"]
+    touching = (p < 0.05 - 1e-6).sum(axis=1) >= 1        # within h of at least one wall...
+    inside = (p < 0.16 - 0.04 - 1e-6).all(axis=1)         # ...and a full kernel from the free faces
+    sel = touching & inside
+    assert sel.sum() > 100
+    np.testing.assert_allclose(d["density"][sel], 1000.0, rtol=1e-3,
+                               err_msg="boundary sums must complete the fill lattice to 1e-3")
+
+
+# ---------------------------------------------------------------------------- conservation
+def test_momentum_is_conserved_without_gravity_or_walls():
+    """Pressure and viscosity forces are pairwise antisymmetric, so total momentum stays put to
+    float32 round-off: the bound is 1e-5 of the total momentum magnitude sum(m |v|)."""
+    rng = np.random.default_rng(0)
+
+    def jitter(state):
+        state["velocity"] = rng.normal(0.0, 0.2, state["velocity"].shape).astype(np.float32)
+
+    spec, cfg, s = make_solver({
+        "shot": {"name": "t"}, "sim": {"particle_radius": 0.01, "gravity": (0, 0, 0), "max_speed": 2.0},
+        "domain": {"min": (0, 0, 0), "max": (1.0, 1.0, 1.0)},
+        "fluids": ({"name": "w", "viscosity": 2.0,
+                    "blocks": ({"min": (0.4, 0.4, 0.4), "max": (0.6, 0.6, 0.6)},)},)}, jitter)
+    m = cfg.fluid_table[0, 0]
+
+    def momentum():
+        s.refresh_fields()
+        v = s.vel.to_numpy().astype(np.float64)     # the integrator's own (half-step) velocity
+        return m * v.sum(0), m * np.linalg.norm(v, axis=1).sum()
+
+    p0, scale = momentum()
+    s.advance_to(0.1)
+    p1, _ = momentum()
+    pos = s.pos.to_numpy()
+    assert pos.min() > 0.05 and pos.max() < 0.95, "the blob reached a wall; the test needs no walls"
+    assert s.steps > 100
+    drift = np.abs(p1 - p0).max() / scale
+    assert drift < 1e-5, f"momentum drift {drift:.2e} of sum m|v| over {s.steps} steps"
+
+
+# ---------------------------------------------------------------------------- hydrostatics
+@pytest.fixture(scope="module")
+def resting_column():
+    H, W = 0.3, 0.2
+    spec, cfg, s = make_solver({
+        "shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
+        "domain": {"min": (0, 0, 0), "max": (W, H + 0.1, W)},
+        "fluids": ({"name": "w", "viscosity": 3.0, "blocks": ({"min": (0, 0, 0), "max": (W, H, W)},)},)})
+    s.advance_to(1.0)
+    return spec, cfg, s.snapshot(), W
+
+
+def test_resting_column_density(resting_column):
+    """Mean density of the settled column (away from the free surface, whose kernel sums are
+    one-sided) is within 1% of rho0."""
+    spec, cfg, d, W = resting_column
+    y = d["position"][:, 1]
+    top = np.percentile(y, 99.5) + spec.sim.particle_radius
+    below = y < top - cfg.h
+    mean = d["density"][below].mean()
+    assert abs(mean / 1000.0 - 1.0) < 0.01, f"mean density {mean:.1f} kg/m^3"
+    assert np.linalg.norm(d["velocity"], axis=1).max() < 0.2, "the column has not settled"
+
+
+@pytest.mark.xfail(strict=True, reason="known gap: the interior pressure gradient of the settled "
+                   "column is ~1.5x rho g, so the floor pressure is ~1.3-1.5x rho g H (issue 3 note)")
+def test_resting_column_bottom_pressure(resting_column):
+    """Hydrostatic pressure: the interior pressure profile, extrapolated to the floor, is within
+    5% of rho g H. (The two layers touching the floor are a boundary layer of the one-sided
+    boundary force and are left out of the fit.)"""
+    spec, cfg, d, W = resting_column
+    p, y = d["position"], d["position"][:, 1]
+    h = cfg.h
+    top = np.percentile(y, 99.5) + spec.sim.particle_radius
+    inner = (y > h) & (y < top - h) & (p[:, 0] > h) & (p[:, 0] < W - h) & (p[:, 2] > h) & (p[:, 2] < W - h)
+    slope, p_floor = np.polyfit(y[inner], d["pressure"][inner], 1)
+    expect = 1000.0 * 9.81 * top
+    assert abs(p_floor / expect - 1.0) < 0.05, f"floor pressure {p_floor:.0f} Pa vs rho g H {expect:.0f} Pa"
+
+
+# --------------------------------------------------------------------------- surface tension
+def test_surface_tension_rounds_a_cube():
+    """Without gravity, a cube under surface tension alone becomes rounder. Measure: corner
+    prominence, max radius / rms radius about the centre: 1.73 for a solid cube, 1.29 for a
+    ball (1.57 for this 10^3 lattice). It must close at least half the gap to a ball."""
+    spec, cfg, s = make_solver({
+        "shot": {"name": "t"}, "sim": {"particle_radius": 0.005, "gravity": (0, 0, 0), "max_speed": 0.5},
+        "domain": {"min": (0, 0, 0), "max": (0.3, 0.3, 0.3)},
+        "fluids": ({"name": "w", "viscosity": 0.5, "surface_tension": 2.0,
+                    "blocks": ({"min": (0.1, 0.1, 0.1), "max": (0.2, 0.2, 0.2)},)},)})
+
+    def prominence():
+        p = s.snapshot()["position"].astype(np.float64)
+        r = np.linalg.norm(p - p.mean(0), axis=1)
+        return r.max() / np.sqrt((r * r).mean())
+
+    ball = np.sqrt(5.0 / 3.0)
+    before = prominence()
+    s.advance_to(0.05)
+    after = prominence()
+    assert after < before - 0.5 * (before - ball), f"corner prominence {before:.3f} -> {after:.3f} (ball {ball:.3f})"
+
+
+# -------------------------------------------------------------------------------- colliders
+def test_no_particle_inside_obstacles_or_outside_containers():
+    """A fast stream into a sphere, a box and a capsule inside a capsule container."""
+    from solver.sph import COLLIDER_TYPES, collider_sdf  # noqa: F401 (importable API)
+
+    spec_dict = {
+        "shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
+        "domain": {"min": (0, 0, 0), "max": (1.0, 0.6, 0.4)},
+        "fluids": ({"name": "w", "blocks": ({"min": (0.02, 0.2, 0.1), "max": (0.2, 0.4, 0.3),
+                                             "velocity": (4.0, 0.0, 0.0)},)},),
+        "colliders": ({"type": "sphere", "center": (0.45, 0.25, 0.2), "radius": 0.08},
+                      {"type": "box", "min": (0.7, 0.0, 0.1), "max": (0.74, 0.3, 0.3)},
+                      {"type": "capsule", "a": (0.3, 0.05, 0.05), "b": (0.3, 0.05, 0.35), "radius": 0.03}),
+    }
+    spec, cfg, s = make_solver(spec_dict)
+    worst = {"sphere": 0.0, "box": 0.0, "capsule": 0.0}
+    for k in range(1, 13):
+        s.advance_to(k / 48)
+        p = s.pos.to_numpy().astype(np.float64)
+        c = spec.colliders
+        worst["sphere"] = min(worst["sphere"], (np.linalg.norm(p - c[0].center, axis=1) - c[0].radius).min())
+        lo, hi = np.array(c[1].min), np.array(c[1].max)
+        inside_box = np.minimum(p - lo, hi - p).min(axis=1)
+        worst["box"] = min(worst["box"], -inside_box.max())
+        a, b = np.array(c[2].a), np.array(c[2].b)
+        t = np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
+        worst["capsule"] = min(worst["capsule"], (np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1) - c[2].radius).min())
+        assert (p >= np.array(spec.domain.min) - 1e-6).all() and (p <= np.array(spec.domain.max) + 1e-6).all()
+    # centres never go inside an obstacle (signed distance >= 0, float32 tolerance)
+    for name, phi in worst.items():
+        assert phi > -1e-5, f"a particle ended {-phi:.2e} m inside the {name}"
+
+
+def test_container_capsule_keeps_particles_inside():
+    spec, cfg, s = make_solver({
+        "shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
+        "domain": {"min": (0, 0, 0), "max": (0.6, 0.6, 0.6)},
+        "fluids": ({"name": "w", "blocks": ({"min": (0.22, 0.3, 0.22), "max": (0.38, 0.42, 0.38)},)},),
+        "colliders": ({"type": "capsule", "a": (0.3, 0.15, 0.3), "b": (0.3, 0.45, 0.3), "radius": 0.13,
+                       "mode": "container"},)})
+    c = spec.colliders[0]
+    a, b = np.array(c.a), np.array(c.b)
+    for k in range(1, 9):
+        s.advance_to(k / 48)
+        p = s.pos.to_numpy().astype(np.float64)
+        t = np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
+        dist = np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1)
+        assert dist.max() <= c.radius + 1e-5, f"frame {k}: a particle left the container by {dist.max() - c.radius:.2e} m"
+
+
+# --------------------------------------------------------------------------- determinism
+def test_stop_and_resume_is_bit_identical_on_one_thread(tmp_path):
+    """Frames after a resume from a checkpoint equal those of an uninterrupted run, bit for bit."""
+    from pipeline.cache import ShotPaths
+    from pipeline.progress import Progress
+    from pipeline.particles import read_frame
+    from pipeline.spec import load_spec
+    from solver import stage
+
+    from conftest import ROOT
+    job = tmp_path / "dambreak.toml"
+    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    common = ["sim.particle_radius=0.02", "sim.threads=1", "shot.frame_end=8", "shot.checkpoint_every=3"]
+    whole = load_spec(job, common + ['shot.output="a"'])
+    split = load_spec(job, common + ['shot.output="b"'])
+    quiet = Progress(interactive=False, stream=open("/dev/null", "w"))
+    stage.run(whole, list(whole.frames), ShotPaths.for_spec(whole), quiet)
+    pb = ShotPaths.for_spec(split)
+    stage.run(split, [1, 2, 3, 4, 5], pb, quiet)          # stops after frame 5 (checkpoint there)
+    stage.run(split, [6, 7, 8], pb, quiet)                # resumes from the frame-5 checkpoint
+    pa = ShotPaths.for_spec(whole)
+    for f in whole.frames:
+        a, _ = read_frame(pa.sim_frame(f))
+        b, _ = read_frame(pb.sim_frame(f))
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=f"frame {f} {key}")
