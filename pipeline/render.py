@@ -61,6 +61,10 @@ class FrameRenderer:
         self._lights(pl)
         if r.ground:
             self._ground(pl)
+        if r.domain:
+            lo, hi = spec.domain.min, spec.domain.max
+            box = pv.Box(bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])).outline()
+            pl.add_mesh(box, color=(0.78, 0.8, 0.84), line_width=1.5, lighting=False)
         if r.colliders:
             for mesh, col in collider_meshes(spec):
                 pl.add_mesh(mesh, color=col.color, pbr=True, metallic=0.0, roughness=0.6,

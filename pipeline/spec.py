@@ -196,6 +196,7 @@ class Render(Strict):
     background: Colour = (0.08, 0.09, 0.11)
     background_top: Colour | None = (0.32, 0.36, 0.42)   # None: flat background
     ground: bool = True
+    domain: bool = True                         # draw the domain box as a thin outline
     colliders: bool = True
     ssaa: bool = True
     depth: Literal["none", "png16"] = "none"

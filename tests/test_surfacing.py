@@ -1,0 +1,187 @@
+"""Surfacing against an analytic sphere of particles, and the VDB/mesh files it writes."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from solver.backend import init_taichi
+
+R_PART = 0.005           # particle radius, m
+CELL = 0.75 * R_PART     # grid cell, m
+SUPPORT = 4.0 * R_PART
+CENTRE = np.array([0.31, 0.22, 0.17])
+
+
+@pytest.fixture(scope="module", autouse=True)
+def taichi_cpu():
+    init_taichi("cpu", 0)
+
+
+def ball(radius=0.06, velocity=(1.0, -2.0, 0.5)):
+    """Particles on the fill lattice (spacing 2r) inside a ball; each carries volume (2r)^3.
+    The equal-volume radius of the particles is the surface we expect."""
+    d = 2 * R_PART
+    ax = np.arange(-radius, radius + d, d)
+    p = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    p = p[np.linalg.norm(p, axis=1) <= radius - R_PART] + CENTRE
+    n = len(p)
+    r_eq = (3 * n * d ** 3 / (4 * np.pi)) ** (1 / 3)
+    vel = np.broadcast_to(np.array(velocity, np.float32), p.shape).copy()
+    return p.astype(np.float32), vel, np.full(n, d ** 3, np.float32), r_eq
+
+
+@pytest.fixture(scope="module")
+def sphere_mesh():
+    from surfacing.reconstruct import colour_field, marching_cubes
+
+    pos, vel, vol, r_eq = ball()
+    field = colour_field(pos, vel, vol, CELL, SUPPORT)
+    return field, marching_cubes(field, 0.5), r_eq
+
+
+def test_sphere_vertices_within_one_cell_of_radius(sphere_mesh):
+    _field, mesh, r_eq = sphere_mesh
+    r = np.linalg.norm(mesh.points - CENTRE, axis=1)
+    err = np.abs(r - r_eq)
+    assert len(mesh.points) > 1000
+    assert err.max() < CELL, f"max radial error {err.max() / CELL:.2f} cells (radius {r_eq:.4f} m)"
+
+
+def test_sphere_mesh_is_closed_manifold_with_outward_normals(sphere_mesh):
+    import pyvista as pv
+
+    _field, mesh, _ = sphere_mesh
+    poly = pv.PolyData(mesh.points, np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).ravel())
+    assert poly.n_open_edges == 0, "the mesh has boundary edges"
+    assert poly.is_manifold
+    edges = poly.extract_all_edges()
+    euler = poly.n_points - edges.n_cells + poly.n_cells
+    assert euler == 2, f"Euler characteristic {euler}, a sphere has 2"
+    outward = np.einsum("ij,ij->i", mesh.normals, mesh.points - CENTRE)
+    assert (outward > 0).all(), "vertex normals must point out of the fluid"
+    assert poly.volume > 0
+
+
+def test_vertex_velocity_is_interpolated_from_particles(sphere_mesh):
+    _field, mesh, _ = sphere_mesh
+    np.testing.assert_allclose(mesh.velocity, np.broadcast_to([1.0, -2.0, 0.5], mesh.velocity.shape),
+                               atol=1e-4, err_msg="a uniform particle velocity must reach every vertex")
+
+
+def _trilinear(acc, xform, points):
+    """Sample a FloatGrid at world points (index-space trilinear interpolation)."""
+    out = np.empty(len(points))
+    for n, p in enumerate(points):
+        ijk = np.array(xform.worldToIndex(tuple(map(float, p))))
+        base = np.floor(ijk).astype(int)
+        f = ijk - base
+        v = 0.0
+        for dx in (0, 1):
+            for dy in (0, 1):
+                for dz in (0, 1):
+                    w = (f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1]) * (f[2] if dz else 1 - f[2])
+                    v += w * acc.getValue((int(base[0] + dx), int(base[1] + dy), int(base[2] + dz)))
+        out[n] = v
+    return out
+
+
+@pytest.fixture(scope="module")
+def vdb_file(sphere_mesh, tmp_path_factory):
+    from surfacing import vdb
+
+    field, mesh, _ = sphere_mesh
+    path = tmp_path_factory.mktemp("vdb") / "ball.0007.vdb"
+    grids = vdb.build_grids(field, mesh, frame=7, time_s=0.25, half_width=3.0)
+    vdb.write(path, grids)
+    return path, grids
+
+
+def test_vdb_round_trip(vdb_file):
+    import pyopenvdb as ov
+
+    path, written = vdb_file
+    grids, _meta = ov.readAll(str(path))
+    by_name = {g.name: g for g in grids}
+    assert set(by_name) == {"surface", "density", "velocity"}
+    assert by_name["surface"].gridClass == ov.GridClass.LEVEL_SET
+    assert by_name["density"].gridClass == ov.GridClass.FOG_VOLUME
+    for g0 in written:
+        g1 = by_name[g0.name]
+        assert g1.transform.voxelSize() == pytest.approx((CELL,) * 3, rel=1e-6)
+        for ijk in [(0, 0, 0), (10, -3, 7)]:
+            assert g1.transform.indexToWorld(ijk) == pytest.approx(g0.transform.indexToWorld(ijk))
+        assert g1.activeVoxelCount() == g0.activeVoxelCount() > 0
+        assert g1.evalActiveVoxelBoundingBox() == g0.evalActiveVoxelBoundingBox()
+        assert g1["frame"] == 7 and g1["time"] == pytest.approx(0.25)
+        a0, a1 = g0.getConstAccessor(), g1.getConstAccessor()
+        for k, item in enumerate(g0.citerOnValues()):
+            if k > 2000:
+                break
+            ijk = item["min"]
+            np.testing.assert_allclose(a1.getValue(ijk), a0.getValue(ijk), rtol=1e-6)
+
+
+def test_level_set_agrees_with_mesh_and_radius(sphere_mesh, vdb_file):
+    import pyopenvdb as ov
+
+    _field, mesh, r_eq = sphere_mesh
+    path, _ = vdb_file
+    ls = [g for g in ov.readAll(str(path))[0] if g.name == "surface"][0]
+    acc, xform = ls.getConstAccessor(), ls.transform
+    sample = mesh.points[:: max(1, len(mesh.points) // 800)]
+    phi = _trilinear(acc, xform, sample)
+    assert np.abs(phi).max() < CELL, f"|phi| at mesh vertices up to {np.abs(phi).max() / CELL:.2f} voxels"
+    # the zero crossing sits at the sphere's radius: inside one cell in, outside one cell out
+    dirs = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0.6, 0.8, 0], [0, -0.6, -0.8]])
+    inner = _trilinear(acc, xform, CENTRE + (r_eq - CELL) * dirs)
+    outer = _trilinear(acc, xform, CENTRE + (r_eq + CELL) * dirs)
+    assert (inner < 0).all() and (outer > 0).all(), f"inner {inner}, outer {outer}"
+
+
+def test_empty_frame_writes_empty_mesh_and_grids(tmp_path, caplog):
+    import pyopenvdb as ov
+
+    from pipeline.spec import ShotSpec
+    from surfacing import vdb
+    from surfacing.reconstruct import read_mesh, write_mesh
+    from surfacing.stage import surface_frame
+
+    spec = ShotSpec.model_validate({"shot": {"name": "t"}, "fluids": (
+        {"name": "w", "blocks": ({"min": (0, 0, 0), "max": (0.1, 0.1, 0.1)},)},)})
+    data = {k: np.zeros((0, 3) if k in ("position", "velocity") else 0, np.float32)
+            for k in ("position", "velocity", "density", "pressure")}
+    data.update(id=np.zeros(0, np.int32), fluid=np.zeros(0, np.int32))
+    with caplog.at_level("WARNING", logger="sphshot"):
+        field, mesh, _ = surface_frame(spec, data, {"particle_radius": 0.01}, 12)
+    assert "frame 0012: surfacing: no particles" in caplog.text
+    vdb.write(tmp_path / "e.vdb", vdb.build_grids(field, mesh, 12, 0.5, 3.0))
+    grids, _ = ov.readAll(str(tmp_path / "e.vdb"))
+    assert {g.name for g in grids} == {"surface", "density", "velocity"}
+    assert all(g.activeVoxelCount() == 0 for g in grids)
+    write_mesh(tmp_path / "e.ply", mesh, "ply")
+    assert len(read_mesh(tmp_path / "e.ply").faces) == 0
+
+
+@pytest.mark.parametrize("fmt,keeps_velocity", [("ply", True), ("obj", False), ("vtu", True)])
+def test_mesh_formats_keep_normals(sphere_mesh, tmp_path, fmt, keeps_velocity):
+    from surfacing.reconstruct import read_mesh, write_mesh
+
+    _field, mesh, _ = sphere_mesh
+    path = tmp_path / f"m.{fmt}"
+    write_mesh(path, mesh, fmt)
+    back = read_mesh(path)
+    np.testing.assert_allclose(back.points, mesh.points, atol=1e-6)
+    np.testing.assert_array_equal(back.faces, mesh.faces)
+    np.testing.assert_allclose(back.normals, mesh.normals, atol=1e-6)
+    if keeps_velocity:
+        np.testing.assert_allclose(back.velocity, mesh.velocity, atol=1e-6)
+
+
+def test_taubin_smoothing_keeps_the_sphere(sphere_mesh):
+    from surfacing.reconstruct import postprocess
+
+    _field, mesh, r_eq = sphere_mesh
+    smooth = postprocess(mesh, smoothing_iterations=20, decimate=0.5)
+    assert 0.4 * len(mesh.faces) < len(smooth.faces) < 0.6 * len(mesh.faces)
+    r = np.linalg.norm(smooth.points - CENTRE, axis=1)
+    assert np.abs(r - r_eq).max() < 1.5 * CELL
