@@ -68,7 +68,7 @@ class FrameRenderer:
         if r.colliders:
             for mesh, col in collider_meshes(spec):
                 pl.add_mesh(mesh, color=col.color, pbr=True, metallic=0.0, roughness=0.6,
-                            smooth_shading=True)
+                            smooth_shading=col.type != "box")   # a box keeps its hard edges
         if r.ssaa:
             pl.enable_anti_aliasing("ssaa")
         if r.material.opacity < 1.0:
