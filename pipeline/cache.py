@@ -112,7 +112,7 @@ def stage_hashes(spec: ShotSpec) -> dict[str, str]:
 
 
 # Bump when a stage's file format or algorithm changes in a way that invalidates old caches.
-FORMAT_VERSION = {"sim": 1, "surface": 1, "render": 1}
+FORMAT_VERSION = {"sim": 2, "surface": 1, "render": 1}
 
 
 # ------------------------------------------------------------------------------------- paths

@@ -7,6 +7,8 @@ One step, in the order of the paper:
                    (Solenthaler & Pajarola 2008: exact at interfaces of fluids of different rho0)
                    pressure p_i = B ((rho_i / rho0)^gamma - 1), clamped at 0, B = rho0 c^2 / gamma
   3. forces        symmetric pressure  a_i -= 1/m_i sum_j (p_i/delta_i^2 + p_j/delta_j^2) grad W
+                   (the pressure gradient is scaled by 1/M, M the kernel gradient's first moment on
+                   the fill lattice, so that a linear pressure field is differentiated exactly)
                    viscosity           a_i += 1/m_i sum_j mu_ij (v_j - v_i)/(delta_i delta_j) lap W_visc
                    colour field        n_i = sum_j grad W / delta_j,  lap c_i = sum_j lap W / delta_j
                    surface tension     a_i -= sigma lap c_i n_i / |n_i| / rho_i   where |n_i| h > threshold
@@ -68,6 +70,7 @@ class SolverConfig:
     density_kernel: int = K.POLY6
     pressure_kernel: int = K.SPIKY
     lattice_density: float = 1.0               # number density of the fill lattice
+    grad_scale: float = 1.0                     # 1 / lattice gradient moment (see kernels)
 
     @property
     def spacing(self) -> float:
@@ -80,6 +83,7 @@ class SolverConfig:
         dk = K.DENSITY_KERNELS[spec.sim.kernels.density]
         pk = K.PRESSURE_KERNELS[spec.sim.kernels.pressure]
         lattice = K.lattice_number_density(dk, h, 2 * r)
+        grad_scale = 1.0 / K.lattice_gradient_moment(pk, h, 2 * r, lattice)
         c = spec.sim.speed_of_sound or 10.0 * spec.expected_max_speed()
         gamma = spec.sim.gamma
         table = np.array([[f.rest_density / lattice, f.rest_density, f.rest_density * c * c / gamma,
@@ -103,12 +107,21 @@ class SolverConfig:
                    colliders_t=np.asarray(ct, np.int32), speed_of_sound=c, gamma=gamma,
                    cfl=spec.sim.cfl, max_dt=spec.sim.max_dt,
                    surface_threshold=spec.sim.surface_threshold, density_kernel=dk,
-                   pressure_kernel=pk, lattice_density=lattice)
+                   pressure_kernel=pk, lattice_density=lattice, grad_scale=grad_scale)
 
 
-def fill_blocks(spec) -> dict[str, np.ndarray]:
-    """Initial particles: each fluid block filled on a cubic lattice of spacing 2r, centred."""
+def fill_blocks(spec, cfg: "SolverConfig | None" = None) -> dict[str, np.ndarray]:
+    """Initial particles: each fluid block filled on a cubic lattice of spacing 2r, centred.
+
+    With gravity, each block starts in hydrostatic equilibrium: the lattice is compressed along
+    gravity to the Tait density rho(d) = rho0 (1 + rho0 |g| d / B)^(1/gamma) at depth d below
+    the block's top. Starting at zero pressure instead, a resting column would drop until it
+    is compressed and then breathe acoustically for seconds (its long acoustic modes are barely
+    damped), biasing every pressure it reports.
+    """
     d = 2.0 * spec.sim.particle_radius
+    g = np.array(spec.sim.gravity, np.float64)
+    gnorm = float(np.linalg.norm(g))
     pos, vel, fluid = [], [], []
     for fi, f in enumerate(spec.fluids):
         for b in f.blocks:
@@ -117,6 +130,8 @@ def fill_blocks(spec) -> dict[str, np.ndarray]:
             start = lo + 0.5 * ((hi - lo) - (n - 1) * d)
             axes = [start[k] + d * np.arange(n[k]) for k in range(3)]
             p = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+            if cfg is not None and gnorm > 0:
+                p = _hydrostatic(p, lo, hi, -g / gnorm, gnorm, cfg.fluid_table[fi], cfg.gamma)
             pos.append(p)
             vel.append(np.broadcast_to(np.array(b.velocity), p.shape))
             fluid.append(np.full(len(p), fi))
@@ -124,6 +139,18 @@ def fill_blocks(spec) -> dict[str, np.ndarray]:
     return {"position": pos, "velocity": np.concatenate(vel).astype(np.float32),
             "acceleration": np.zeros_like(pos), "fluid": np.concatenate(fluid).astype(np.int32),
             "id": np.arange(len(pos), dtype=np.int32)}
+
+
+def _hydrostatic(p, lo, hi, up, g, fluid_row, gamma):
+    """Compress a block's particles along `up` so each layer has its hydrostatic density."""
+    rho0, B = float(fluid_row[F_RHO0]), float(fluid_row[F_B])
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    top, bottom = (corners @ up).max(), (corners @ up).min()
+    height = np.linspace(0.0, top - bottom, 513)                      # above the block's bottom
+    ratio = (1.0 + rho0 * g * (top - bottom - height) / B) ** (-1.0 / gamma)   # rho0 / rho
+    squeezed = np.concatenate([[0.0], np.cumsum(0.5 * (ratio[1:] + ratio[:-1]) * np.diff(height))])
+    s = p @ up - bottom
+    return p + np.outer(np.interp(s, height, squeezed) - s, up)
 
 
 # ==================================================================================== helpers
@@ -136,6 +163,24 @@ def cell_of(p, origin, inv_cell: ti.f32, dims):
 @ti.func
 def flat(c, dims) -> ti.i32:
     return c.x + dims.x * (c.y + dims.y * c.z)
+
+
+@ti.func
+def table_row(t: ti.template(), row: ti.i32, d: ti.f32, h: ti.f32) -> ti.f32:
+    """Linear interpolation in row `row` of a table sampled on [0, h]."""
+    n = t.shape[1]
+    x = ti.math.clamp(d / h, 0.0, 1.0) * (n - 1)
+    i = ti.min(ti.cast(ti.floor(x), ti.i32), n - 2)
+    f = x - i
+    return t[row, i] * (1.0 - f) + t[row, i + 1] * f
+
+
+@ti.func
+def hydrostatic_wall(a: ti.f32, n, g, mom: ti.template(), h: ti.f32):
+    """sum_b (g . x_bi) grad W_ib over the samples beyond a plane wall at distance a with
+    inward normal n: the pressure difference a hydrostatic wall adds (Adami et al. 2012)."""
+    gn = g.dot(n)
+    return table_row(mom, 0, a, h) * gn * n + table_row(mom, 1, a, h) * (g - gn * n)
 
 
 @ti.func
@@ -297,7 +342,7 @@ def k_gather(order: I1, pos: V3, vel: V3, acc: V3, fluid: I1, pid: I1,
 @ti.kernel
 def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
               start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3,
-              h: ti.f32, ftab: F2, gamma: ti.f32, oct_t: F4, oct_g: F4,
+              h: ti.f32, ftab: F2, gamma: ti.f32, oct_t: F4, oct_g: F4, lattice: ti.f32,
               dmin: vec3, dmax: vec3, ctype: I1, cprm: F2, dkern: ti.template()):
     for i in pos:
         xi = pos[i]
@@ -313,13 +358,16 @@ def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
                 c1 = flat(ivec3(x1, cy, cz), dims)
                 for j in range(start[c0], start[c1] + count[c1]):
                     s += K.w(dkern, (xi - pos[j]).norm(), h)
-        # walls: the domain's six planes and the colliders, as half-spaces of fluid
-        wd, _g = domain_walls(xi, dmin, dmax, h, oct_t, oct_g)
-        s += wd
+        # walls: the domain's six planes and the colliders, as boundary samples on the fill
+        # lattice. They take the particle's own compression, so the share f of the kernel they
+        # cover scales the fluid's sum up: delta = sum_fluid / (1 - f). Exact at rest and
+        # under uniform (e.g. hydrostatic) compression; f is capped for particles in corners.
+        wall, _g = domain_walls(xi, dmin, dmax, h, oct_t, oct_g)
         for k in range(ctype.shape[0]):
             phi, _n = collider_sdf(ctype[k], cprm, k, xi)
             if phi < h:
-                s += table3(oct_t, 0, ti.max(phi, 0.0), 0.0, 0.0, h)   # planar approximation
+                wall += table3(oct_t, 0, ti.max(phi, 0.0), 0.0, 0.0, h)   # planar approximation
+        s = s / ti.max(1.0 - wall / lattice, 0.1)
         f = fluid[i]
         r = ftab[f, F_MASS] * s
         delta[i] = s
@@ -330,7 +378,8 @@ def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
 @ti.kernel
 def k_forces(pos: V3, vel: V3, acc: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
              start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3,
-             h: ti.f32, ftab: F2, gravity: vec3, oct_t: F4, oct_g: F4, threshold: ti.f32,
+             h: ti.f32, ftab: F2, gravity: vec3, oct_t: F4, oct_g: F4, mom: F2, lattice: ti.f32,
+             grad_scale: ti.f32, threshold: ti.f32,
              dmin: vec3, dmax: vec3, ctype: I1, cprm: F2, stats: F1, pkern: ti.template()):
     for i in pos:
         xi, vi = pos[i], vel[i]
@@ -360,18 +409,33 @@ def k_forces(pos: V3, vel: V3, acc: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
                         a_v += mu * (vel[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
                         n += K.grad_w(K.POLY6, rv, r, h) / dj
                         lap += K.lap_poly6(r, h) / dj
-        a = (a_p + a_v) / mi + gravity
+        a = (grad_scale * a_p + a_v) / mi + gravity
         # walls push with the particle's own pressure term only, p_i/delta_i^2 (Akinci et al.
         # 2012): boundary samples are fixed and carry no energy of their own, so this is the
         # energy-consistent force. Mirroring the pressure (2 p_i/delta_i^2) pumps energy into
         # fluid resting on a wall.
-        wall = pi_ / mi
+        wall = grad_scale * pi_ / mi * (di / lattice)   # samples are as compressed as the particle
         _d, wg = domain_walls(xi, dmin, dmax, h, oct_t, oct_g)
         a += wall * wg
+        # the samples' hydrostatic pressure differences: -rho_i/(m_i delta_i^2) sum_b dp_b grad W
+        hyd = vec3(0.0)
+        for ax in ti.static(range(3)):
+            lo = xi[ax] - dmin[ax]
+            hi = dmax[ax] - xi[ax]
+            if lo < h and lo <= hi:
+                e = vec3(0.0)
+                e[ax] = 1.0
+                hyd += hydrostatic_wall(ti.max(lo, 0.0), e, gravity, mom, h)
+            elif hi < h:
+                e = vec3(0.0)
+                e[ax] = -1.0
+                hyd += hydrostatic_wall(ti.max(hi, 0.0), e, gravity, mom, h)
         for k in range(ctype.shape[0]):
             phi, nk = collider_sdf(ctype[k], cprm, k, xi)
             if phi < h:
                 a += wall * table3(oct_g, 0, ti.max(phi, 0.0), 0.0, 0.0, h) * nk
+                hyd += hydrostatic_wall(ti.max(phi, 0.0), nk, gravity, mom, h)
+        a -= grad_scale * rho[i] / (mi * di * di) * (di / lattice) * hyd
         sigma = ftab[fi, F_SIGMA]
         nn = n.norm()
         if sigma > 0.0 and nn * h > threshold:
@@ -503,6 +567,9 @@ class SPHSolver:
         self.oct_t.from_numpy(ot)
         self.oct_g = ti.ndarray(ti.f32, og.shape)
         self.oct_g.from_numpy(og)
+        mom = K.ghost_moment_tables(cfg.pressure_kernel, h, cfg.particle_radius)
+        self.mom = ti.ndarray(ti.f32, mom.shape)
+        self.mom.from_numpy(mom)
         self.pos.from_numpy(state["position"].astype(np.float32))
         self.vel.from_numpy(state["velocity"].astype(np.float32))
         self.acc.from_numpy(state.get("acceleration", np.zeros((n, 3), np.float32)).astype(np.float32))
@@ -536,14 +603,15 @@ class SPHSolver:
         cfg = self.cfg
         k_density(self.pos, self.fluid, self.delta, self.rho, self.prs, self.start, self.count,
                   self.origin, self.inv_cell, self.dims, self.h, self.ftab, cfg.gamma,
-                  self.oct_t, self.oct_g, self.dmin, self.dmax, self.ctype, self.cprm, cfg.density_kernel)
+                  self.oct_t, self.oct_g, cfg.lattice_density, self.dmin, self.dmax, self.ctype, self.cprm, cfg.density_kernel)
 
     def forces(self) -> None:
         cfg = self.cfg
         self.stats.fill(0.0)
         k_forces(self.pos, self.vel, self.acc, self.fluid, self.delta, self.rho, self.prs,
                  self.start, self.count, self.origin, self.inv_cell, self.dims, self.h, self.ftab,
-                 vec3(*cfg.gravity), self.oct_t, self.oct_g, cfg.surface_threshold, self.dmin, self.dmax,
+                 vec3(*cfg.gravity), self.oct_t, self.oct_g, self.mom, cfg.lattice_density, cfg.grad_scale,
+                 cfg.surface_threshold, self.dmin, self.dmax,
                  self.ctype, self.cprm, self.stats, cfg.pressure_kernel)
         s = self.stats.to_numpy()
         self.vmax, self.amax = float(s[0]), float(s[1])

@@ -61,7 +61,7 @@ def build_solver(spec, paths, first_frame: int):
         log.info("sim: resuming from checkpoint at frame %d (t = %.4f s, step %d)", frame,
                  attrs["time"], attrs["step"])
         return cfg, solver, frame
-    solver = SPHSolver(cfg, fill_blocks(spec))
+    solver = SPHSolver(cfg, fill_blocks(spec, cfg))
     log.info("sim: %d particles, h = %.4g m, c = %.3g m/s", solver.n, cfg.h, cfg.speed_of_sound)
     return cfg, solver, None
 

@@ -16,12 +16,14 @@ def taichi_cpu():
     init_taichi("cpu", 1)
 
 
-def make_solver(spec_dict, mutate=None):
+def make_solver(spec_dict, mutate=None, with_cfg=False):
+    """A solver for a spec; with_cfg starts fluid blocks in hydrostatic equilibrium as the sim
+    stage does (tests of other properties start from the plain lattice)."""
     from solver.sph import SolverConfig, SPHSolver, fill_blocks
 
     spec = ShotSpec.model_validate(spec_dict)
     cfg = SolverConfig.from_spec(spec)
-    state = fill_blocks(spec)
+    state = fill_blocks(spec, cfg if with_cfg else None)
     if mutate:
         mutate(state)
     return spec, cfg, SPHSolver(cfg, state)
@@ -124,41 +126,51 @@ def test_momentum_is_conserved_without_gravity_or_walls():
 # ---------------------------------------------------------------------------- hydrostatics
 @pytest.fixture(scope="module")
 def resting_column():
+    """A 0.2 x 0.3 x 0.2 m water column, settled for 0.8 s, then sampled every 4 ms for 0.2 s.
+
+    A weakly compressible column keeps breathing acoustically (period 4H/c = 0.04 s) for a
+    long time, so single snapshots swing by +-10%; the hydrostatic state is the time average
+    over several periods. Returns per-sample (mean density below the top layer, floor pressure
+    extrapolated from the interior profile, rho g H)."""
     H, W = 0.3, 0.2
     spec, cfg, s = make_solver({
         "shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
         "domain": {"min": (0, 0, 0), "max": (W, H + 0.1, W)},
-        "fluids": ({"name": "w", "viscosity": 3.0, "blocks": ({"min": (0, 0, 0), "max": (W, H, W)},)},)})
-    s.advance_to(1.0)
-    return spec, cfg, s.snapshot(), W
+        "fluids": ({"name": "w", "viscosity": 3.0, "blocks": ({"min": (0, 0, 0), "max": (W, H, W)},)},)},
+        with_cfg=True)
+    s.advance_to(0.8)
+    h, samples = cfg.h, []
+    for k in range(50):
+        s.advance_to(0.8 + 0.004 * (k + 1))
+        d = s.snapshot()
+        p, y = d["position"], d["position"][:, 1]
+        top = np.percentile(y, 99.5) + spec.sim.particle_radius   # free surface: top centres + r
+        # interior: a kernel away from the free surface and the side walls
+        inner = (y > h) & (y < top - h) & (p[:, 0] > h) & (p[:, 0] < W - h) & (p[:, 2] > h) & (p[:, 2] < W - h)
+        _slope, p_floor = np.polyfit(y[inner], d["pressure"][inner], 1)
+        samples.append((d["density"][y < top - h].mean(), p_floor, 1000.0 * 9.81 * top))
+    return np.array(samples), float(np.sqrt((s.vel.to_numpy() ** 2).sum(axis=1).mean()))
 
 
 def test_resting_column_density(resting_column):
-    """Mean density of the settled column (away from the free surface, whose kernel sums are
-    one-sided) is within 1% of rho0."""
-    spec, cfg, d, W = resting_column
-    y = d["position"][:, 1]
-    top = np.percentile(y, 99.5) + spec.sim.particle_radius
-    below = y < top - cfg.h
-    mean = d["density"][below].mean()
+    """Mean density below the top layer (whose kernel sums are one-sided) is within 1% of rho0,
+    and the column is at rest."""
+    samples, vrms = resting_column
+    mean = samples[:, 0].mean()
     assert abs(mean / 1000.0 - 1.0) < 0.01, f"mean density {mean:.1f} kg/m^3"
-    assert np.linalg.norm(d["velocity"], axis=1).max() < 0.2, "the column has not settled"
+    # at rest: rms speed under 5% of the free-fall speed sqrt(2 g H) = 2.4 m/s. (Measured:
+    # 0.17 m/s at t = 0.2 s while settling; then a floor of ~0.06 m/s of particle-scale WCSPH
+    # velocity noise that Müller's viscosity at 3 Pa s does not remove.)
+    assert vrms < 0.12, f"the column has not settled: rms speed {vrms:.3f} m/s"
 
 
-@pytest.mark.xfail(strict=True, reason="known gap: the interior pressure gradient of the settled "
-                   "column is ~1.5x rho g, so the floor pressure is ~1.3-1.5x rho g H (issue 3 note)")
 def test_resting_column_bottom_pressure(resting_column):
-    """Hydrostatic pressure: the interior pressure profile, extrapolated to the floor, is within
-    5% of rho g H. (The two layers touching the floor are a boundary layer of the one-sided
-    boundary force and are left out of the fit.)"""
-    spec, cfg, d, W = resting_column
-    p, y = d["position"], d["position"][:, 1]
-    h = cfg.h
-    top = np.percentile(y, 99.5) + spec.sim.particle_radius
-    inner = (y > h) & (y < top - h) & (p[:, 0] > h) & (p[:, 0] < W - h) & (p[:, 2] > h) & (p[:, 2] < W - h)
-    slope, p_floor = np.polyfit(y[inner], d["pressure"][inner], 1)
-    expect = 1000.0 * 9.81 * top
-    assert abs(p_floor / expect - 1.0) < 0.05, f"floor pressure {p_floor:.0f} Pa vs rho g H {expect:.0f} Pa"
+    """Hydrostatics: the interior pressure profile, extrapolated to the floor and averaged over
+    time, is within 5% of rho g H. (The layers touching the floor form a thin boundary layer of
+    the energy-consistent wall force and are left out of the fit.)"""
+    samples, _ = resting_column
+    ratio = samples[:, 1].mean() / samples[:, 2].mean()
+    assert abs(ratio - 1.0) < 0.05, f"floor pressure {ratio:.3f} x rho g H"
 
 
 # --------------------------------------------------------------------------- surface tension
