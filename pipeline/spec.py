@@ -10,6 +10,7 @@ Every key is documented in docs/jobspec.md.
 from __future__ import annotations
 
 import math
+import os
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
@@ -255,7 +256,8 @@ class ShotSpec(Strict):
         out = Path(self.shot.output)
         if not out.is_absolute():
             out = Path(self.job_dir) / out
-        return out / self.shot.name / f"v{self.shot.version:03d}"
+        # normalised but not resolved: symlinks of a farm's shared folder stay as written
+        return Path(os.path.normpath(out / self.shot.name / f"v{self.shot.version:03d}"))
 
     def frame_time(self, frame: int) -> float:
         """Simulated time (s) of a frame; frame_start is t = 0."""

@@ -1,0 +1,158 @@
+#!/usr/bin/env python3
+"""Solver speed: sphshot vs SPlisHSPlasH on the same dam break, in one session.
+
+The scene is the anchor's (../shared/anchors/solver): tank 1.6 x 0.67 x 0.6 m, particle radius
+6 mm, about 50k particles, 0.5 s simulated. sphshot runs in a child process (so its peak memory
+is its own), then the anchor script runs SPlisHSPlasH's WCSPH and DFSPH through pysplishsplash.
+Prints one line per solver and the ratios: particle-steps per second and simulated seconds per
+wall second, with peak resident memory.
+
+    .venv/bin/python bench/solver.py                       # both, 0.5 s simulated
+    .venv/bin/python bench/solver.py --only sphshot --stop-at 0.1
+    .venv/bin/python bench/solver.py --backend cuda --particles 1000000   # on a GPU
+
+Steps are timed after Taichi's kernel compilation (one warm-up step), like the anchor times
+stepping after its init.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+ANCHOR = ROOT.parent / "shared" / "anchors" / "solver" / "bench_splishsplash.sh"
+
+
+def scene(particles: int, radius: float):
+    """The anchor tank, with a water block of about `particles` particles at the left end."""
+    from pipeline.spec import ShotSpec
+
+    d = 2 * radius
+    # the anchor's block is 0.504 x 0.324 x 0.576 m (42 x 27 x 48 spacings of 12 mm = 54k);
+    # scale it uniformly to the requested count, capped to the tank
+    n0 = 42 * 26 * 46
+    s = (particles / n0) ** (1 / 3) * 0.006 / radius
+    nx, ny, nz = (max(1, round(k * s)) for k in (42, 26, 46))
+    ext = (min(nx * d, 1.5), min(ny * d, 0.6), min(nz * d, 0.59))
+    return ShotSpec.model_validate({
+        "shot": {"name": "bench", "frame_end": 13, "fps": 24.0},
+        "sim": {"particle_radius": radius},
+        "domain": {"min": (0.0, 0.0, -0.3), "max": (1.6, 0.67, 0.3)},
+        "fluids": ({"name": "water", "viscosity": 1.0,
+                    "blocks": ({"min": (0.0, 0.0, -0.3), "max": (ext[0], ext[1], -0.3 + ext[2])},)},)})
+
+
+def child(args) -> None:
+    from solver.backend import init_taichi
+
+    arch = init_taichi(args.backend, args.threads)
+    from solver.sph import SolverConfig, SPHSolver, fill_blocks
+    import taichi as ti
+
+    spec = scene(args.particles, args.radius)
+    cfg = SolverConfig.from_spec(spec)
+    t0 = time.perf_counter()
+    s = SPHSolver(cfg, fill_blocks(spec, cfg))
+    s.step()                      # compile and warm up
+    ti.sync()
+    init = time.perf_counter() - t0
+    steps0, time0 = s.steps, s.time
+    t1 = time.perf_counter()
+    while s.time < args.stop_at:
+        s.step(args.stop_at, timed=args.phases)
+    ti.sync()
+    wall = time.perf_counter() - t1
+    steps = s.steps - steps0
+    pos = s.pos.to_numpy()
+    result = {"solver": f"sphshot-{arch}", "particles": s.n, "steps": steps,
+              "sim_time_s": round(s.time - time0, 4), "wall_s": round(wall, 3), "init_s": round(init, 2),
+              "ms_per_step": round(1000 * wall / steps, 3),
+              "particle_steps_per_s": round(s.n * steps / wall, 1),
+              "sim_s_per_wall_s": round((s.time - time0) / wall, 5),
+              "front_x_m": round(float(pos[:, 0].max()), 4)}
+    if args.phases:
+        result["phase_s"] = {k: round(v, 2) for k, v in s.timer.totals.items()}
+    print("RESULT " + json.dumps(result), flush=True)
+
+
+def run_sphshot(args) -> dict:
+    cmd = [sys.executable, __file__, "--child", "--stop-at", str(args.stop_at), "--backend", args.backend,
+           "--threads", str(args.threads), "--particles", str(args.particles), "--radius", str(args.radius)]
+    if args.phases:
+        cmd.append("--phases")
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    m = re.search(r"^RESULT (\{.*\})$", proc.stdout, re.M)
+    if proc.returncode != 0 or not m:
+        raise SystemExit(f"sphshot child failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
+    r = json.loads(m.group(1))
+    after = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    r["peak_rss_mb"] = round(max(after, before) / 1024.0, 1)
+    return r
+
+
+def run_anchor(args) -> list[dict]:
+    if not ANCHOR.exists():
+        print(f"# anchor script not found at {ANCHOR}; skipping SPlisHSPlasH")
+        return []
+    proc = subprocess.run(["bash", str(ANCHOR), "--solvers", args.anchor_solvers, "--stop-at", str(args.stop_at)],
+                          capture_output=True, text=True)
+    out = []
+    for line in proc.stdout.splitlines():
+        if line.startswith("#"):
+            print(line)
+        m = re.match(r"^SOLVER=(\w+) (.*)$", line)
+        if m and "FAILED" not in line:
+            kv = dict(item.split("=", 1) for item in m.group(2).split())
+            out.append({"solver": f"splishsplash-{m.group(1)}", **kv})
+    if not out:
+        print(proc.stdout[-2000:], proc.stderr[-2000:])
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--stop-at", type=float, default=0.5, help="simulated seconds")
+    ap.add_argument("--only", choices=("sphshot", "anchor"), help="run one side only")
+    ap.add_argument("--backend", default="cpu", choices=("cpu", "cuda", "vulkan", "auto"))
+    ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--particles", type=int, default=50_000)
+    ap.add_argument("--radius", type=float, default=0.006)
+    ap.add_argument("--anchor-solvers", default="wcsph,dfsph")
+    ap.add_argument("--phases", action="store_true", help="time each step phase (adds syncs)")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        return child(args)
+    load = os.getloadavg()[0]
+    print(f"# {os.cpu_count()} cores, 1-min load {load:.2f}{'  (busy machine: numbers are noisy)' if load > 0.5 else ''}")
+    print(f"# command: {' '.join([Path(sys.executable).name, *sys.argv])}")
+    rows = []
+    if args.only != "anchor":
+        rows.append(run_sphshot(args))
+    if args.only != "sphshot":
+        rows += run_anchor(args)
+    keys = ["particles", "steps", "sim_time_s", "wall_s", "ms_per_step", "particle_steps_per_s",
+            "sim_s_per_wall_s", "init_s", "peak_rss_mb"]
+    for r in rows:
+        print(f"{r['solver']:22s} " + " ".join(f"{k}={r.get(k)}" for k in keys)
+              + (f" phases={r['phase_s']}" if "phase_s" in r else ""))
+    ours = [r for r in rows if r["solver"].startswith("sphshot")]
+    for ref in (r for r in rows if r["solver"].startswith("splishsplash")):
+        for o in ours:
+            ps = float(o["particle_steps_per_s"]) / float(ref["particle_steps_per_s"])
+            ss = float(o["sim_s_per_wall_s"]) / float(ref["sim_s_per_wall_s"])
+            mem = float(o["peak_rss_mb"]) / float(ref["peak_rss_mb"]) if ref.get("peak_rss_mb") not in (None, "None") else float("nan")
+            print(f"RATIO {o['solver']} / {ref['solver']}: particle-steps/s x{ps:.2f}, "
+                  f"simulated s per wall s x{ss:.2f}, peak memory x{mem:.2f}")
+
+
+if __name__ == "__main__":
+    main()
