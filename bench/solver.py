@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path[0] = str(ROOT)   # this file is bench/solver.py: keep it from shadowing the solver package
 ANCHOR = ROOT.parent / "shared" / "anchors" / "solver" / "bench_splishsplash.sh"
 
 

@@ -48,6 +48,19 @@ def w(kind: ti.template(), r: ti.f32, h: ti.f32) -> ti.f32:
 
 
 @ti.func
+def w_r2(kind: ti.template(), r2: ti.f32, h: ti.f32) -> ti.f32:
+    """W from the squared distance: poly6 needs no square root (the density loop's hot path)."""
+    out = 0.0
+    if ti.static(kind == POLY6):
+        if r2 < h * h:
+            d = h * h - r2
+            out = 315.0 / (64.0 * PI * h ** 9) * d * d * d
+    else:
+        out = w(kind, ti.sqrt(r2), h)
+    return out
+
+
+@ti.func
 def dw(kind: ti.template(), r: ti.f32, h: ti.f32) -> ti.f32:
     """Radial derivative dW/dr (<= 0); grad W = dW/dr * r_vec / r."""
     out = 0.0

@@ -1,0 +1,150 @@
+#!/usr/bin/env python3
+"""Surfacing speed: sphshot vs splashsurf on the same particle frames, in one session.
+
+Particles come from the anchor's generator (../shared/anchors/surface/bench_surface.py): a
+dam-break-like jittered lattice with splash droplets, r = 0.01 m, about 50k and 500k particles.
+Both sides use the same particle radius, a kernel support of 4 radii (splashsurf: smoothing
+length 2 radii), cube size 0.75 radii and iso 0.6 (splashsurf's threshold convention; sphshot's
+colour field is normalised the same way, 1 inside the bulk).
+
+sphshot's surfacer takes each particle's volume from the sim cache (m / rho); these frames have
+no density, so it uses the lattice volume (2r)^3 — the density pass is the sim stage's work.
+splashsurf computes its own densities (included in its time). splashsurf runs in its own venv
+(its wheel wants NumPy 2; pyopenvdb needs NumPy 1) as a child process; sphshot also runs in a
+child, so both peak memories are per process. Timings are medians of --repeat runs after a
+warm-up; VDB writing is timed separately.
+
+    .venv/bin/python bench/surface.py --sizes 50k          # ~1 min
+    .venv/bin/python bench/surface.py --sizes 50k,500k     # ~5 min
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[0] = str(ROOT)
+ANCHOR = ROOT.parent / "shared" / "anchors" / "surface" / "bench_surface.py"
+SPLASH_VENV = Path(os.environ.get("SPLASH_VENV", Path(tempfile.gettempdir()) / "surfvenv"))
+SIZES = {"50k": (50_000, 2_000), "500k": (500_000, 5_000)}
+R, CUBE, SUPPORT, ISO = 0.01, 0.75, 4.0, 0.6
+
+
+def particles(size: str, out: Path) -> Path:
+    spec = importlib.util.spec_from_file_location("anchor_surface", ANCHOR)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    import numpy as np
+
+    P, info = mod.make_particles(*SIZES[size], r=R)
+    path = out / f"P_{size}.npy"
+    np.save(path, P)
+    return path
+
+
+def child_sphshot(path: str, repeat: int, vdb_dir: str) -> None:
+    import numpy as np
+
+    from solver.backend import init_taichi
+    init_taichi("cpu", 0)
+    from surfacing import vdb
+    from surfacing.reconstruct import colour_field, marching_cubes
+
+    P = np.load(path).astype(np.float32)
+    vel = np.zeros_like(P)
+    vol = np.full(len(P), (2 * R) ** 3, np.float32)
+    colour_field(P[:2000], vel[:2000], vol[:2000], CUBE * R, SUPPORT * R)      # compile, warm up
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        field = colour_field(P, vel, vol, CUBE * R, SUPPORT * R)
+        t1 = time.perf_counter()
+        mesh = marching_cubes(field, ISO)
+        t2 = time.perf_counter()
+        times.append((t2 - t0, t1 - t0, t2 - t1))
+    t0 = time.perf_counter()
+    grids = vdb.build_grids(field, mesh, 1, 0.0, 3.0)
+    vdb.write(Path(vdb_dir) / "bench.vdb", grids)
+    t_vdb = time.perf_counter() - t0
+    total, splat, mc = sorted(times)[len(times) // 2]
+    f = np.asarray(mesh.faces)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, cnt = np.unique(e[:, 0].astype(np.int64) * (len(mesh.points) + 1) + e[:, 1], return_counts=True)
+    print("RESULT " + json.dumps({
+        "method": "sphshot", "particles": len(P), "mesh_s": round(total, 3), "splat_s": round(splat, 3),
+        "marching_cubes_s": round(mc, 3), "vdb_s": round(t_vdb, 3), "tris": len(f),
+        "grid_nodes": int(np.prod(field.colour.shape)), "closed": bool((cnt == 2).all())}), flush=True)
+
+
+SPLASH_CHILD = r"""
+import json, sys, time, numpy as np, pysplashsurf as ps
+P = np.load(sys.argv[1]); repeat = int(sys.argv[2])
+a = dict(particle_radius=%r, smoothing_length=%r, cube_size=%r, iso_surface_threshold=%r)
+ps.reconstruct_surface(P[:2000], **a)
+ts = []
+for _ in range(repeat):
+    t = time.perf_counter(); rec = ps.reconstruct_surface(P, **a); ts.append(time.perf_counter() - t)
+T = np.asarray(rec.mesh.triangles)
+e = np.sort(np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]]), axis=1)
+_, cnt = np.unique(e[:, 0].astype(np.int64) * (int(T.max()) + 1) + e[:, 1], return_counts=True)
+print("RESULT " + json.dumps({"method": "splashsurf", "particles": len(P), "mesh_s": round(sorted(ts)[len(ts) // 2], 3),
+      "tris": len(T), "closed": bool((cnt == 2).all())}), flush=True)
+""" % (R, SUPPORT / 2, CUBE, ISO)
+
+
+def ensure_splash_venv() -> Path:
+    py = SPLASH_VENV / "bin" / "python"
+    if not py.exists():
+        subprocess.run(["/usr/bin/python3", "-m", "venv", str(SPLASH_VENV)], check=True)
+    ok = subprocess.run([str(py), "-c", "import pysplashsurf"], capture_output=True).returncode == 0
+    if not ok:
+        subprocess.run([str(py), "-m", "pip", "install", "-q", "numpy", "pysplashsurf==0.14.1"], check=True)
+    return py
+
+
+def run_child(cmd, env=None) -> dict:
+    t0 = os.times()
+    proc = subprocess.run(["/usr/bin/time", "-v", *cmd], capture_output=True, text=True, env=env, cwd=ROOT)
+    m = re.search(r"^RESULT (\{.*\})$", proc.stdout, re.M)
+    if proc.returncode != 0 or not m:
+        raise SystemExit(f"child failed: {cmd}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+    r = json.loads(m.group(1))
+    rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", proc.stderr)
+    r["peak_rss_mb"] = round(int(rss.group(1)) / 1024, 1) if rss else None
+    return r
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", default="50k,500k")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        return child_sphshot(args.child[0], int(args.child[1]), args.child[2])
+    load = os.getloadavg()[0]
+    print(f"# {os.cpu_count()} cores, 1-min load {load:.2f}{'  (busy machine: numbers are noisy)' if load > 0.5 else ''}")
+    print(f"# command: {' '.join([Path(sys.executable).name, *sys.argv])}")
+    splash_py = ensure_splash_venv()
+    work = Path(tempfile.mkdtemp(prefix="sphshot_surface_bench_"))
+    for size in args.sizes.split(","):
+        path = particles(size, work)
+        ours = run_child([sys.executable, __file__, "--child", str(path), str(args.repeat), str(work)])
+        ref = run_child([str(splash_py), "-c", SPLASH_CHILD, str(path), str(args.repeat)])
+        for r in (ours, ref):
+            print(f"{size:5s} {r['method']:11s} " + " ".join(f"{k}={v}" for k, v in r.items() if k != "method"))
+        print(f"RATIO {size}: sphshot mesh time x{ours['mesh_s'] / ref['mesh_s']:.2f} of splashsurf's "
+              f"(>1 is slower), peak memory x{ours['peak_rss_mb'] / ref['peak_rss_mb']:.2f}, "
+              f"triangles x{ours['tris'] / ref['tris']:.2f}; VDB writing {ours['vdb_s']} s on top")
+
+
+if __name__ == "__main__":
+    main()
