@@ -183,3 +183,21 @@ def test_memory_stays_flat_over_100_frames(tmp_path):
         renderer.close()
     growth = (rss[100] - rss[20]) / 2**20
     assert growth < 30, f"resident memory grew {growth:.1f} MB over 80 frames"
+
+
+def test_depth_pass_png16(tmp_path):
+    """The optional depth pass: 16-bit PNG, background 65535, the sphere nearer than the ground."""
+    from pipeline import render
+
+    spec = scene(tmp_path, depth="png16", ground=False, domain=False, colliders=False, background_top=None)
+    paths = synthetic_meshes(spec, [2])
+    render.run(spec, [2], paths, quiet())
+    depth = np.asarray(Image.open(paths.render_depth(2)))
+    assert depth.dtype == np.uint16 and depth.shape == (180, 320)
+    colour = np.asarray(Image.open(paths.render_frame(2)).convert("RGB")).astype(int)
+    background = colour[0, 0]
+    hit = np.abs(colour - background).sum(axis=2) > 30          # pixels showing the sphere
+    assert hit.mean() > 0.01
+    assert (depth[~hit] == 65535).mean() > 0.95, "background must be 65535"
+    # silhouette pixels are colour-blended with the background but not depth-blended: allow 2%
+    assert (depth[hit] < 65535).mean() > 0.98 and depth.min() == 0   # normalised: nearest hit is 0
