@@ -47,9 +47,6 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--stage", choices=STAGE_CHOICES, default="all")
     r.add_argument("--frames", help="A, A-B or A-BxSTEP (default: the whole shot)")
     r.add_argument("--force", action="store_true", help="recompute frames even when valid")
-    r.add_argument("--executor", choices=("serial", "dask"), default="serial")
-    r.add_argument("--workers", type=int, default=0, help="dask: local worker processes (0 = cores)")
-    r.add_argument("--scheduler", help="dask: address of an existing scheduler, tcp://host:8786")
 
     s = sub.add_parser("status", help="per stage: frames valid, missing, stale, and where")
     common(s)
@@ -99,9 +96,7 @@ def cmd_run(args) -> int:
     from .spec import load_spec
     spec = load_spec(args.job, args.overrides)
     frames = parse_frames(args.frames, spec.frames) if args.frames else list(spec.frames)
-    if args.workers < 0:
-        raise UsageError(f"--workers: expected a count >= 0, got {args.workers}")
-    executor = make_executor(args.executor, workers=args.workers, scheduler=args.scheduler)
+    executor = make_executor("serial")
     try:
         run_stages(spec, _stages(args.stage), frames, force=args.force, executor=executor,
                    progress=Progress())

@@ -169,3 +169,28 @@ def test_dead_temporaries_are_removed_but_live_ones_kept(tmp_path):
         p.write_text("x")
     assert cache.remove_dead_temporaries(tmp_path) == 1
     assert not dead.exists() and live.exists() and other_host.exists()
+
+
+def test_sigterm_writes_checkpoint_and_exits_5(tmp_path):
+    """SIGTERM (or SLURM's SIGUSR1 warning) during the sim: checkpoint, exit 5, clean resume."""
+    job = tmp_path / "dambreak.toml"
+    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    args = small("shot.frame_end=40", "shot.checkpoint_every=100")
+    spec = load_spec(job, [s for s in args if s != "--set"])
+    paths = cache.ShotPaths.for_spec(spec)
+    cmd = [sys.executable, "-m", "pipeline.cli", "run", str(job), "--stage", "sim", *args]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    deadline = time.time() + 300
+    while time.time() < deadline and not paths.sim_frame(4).exists():
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 5, err
+    assert "stopped by SIGTERM" in err and "Traceback" not in err
+    written = [f for f in spec.frames if paths.sim_frame(f).exists()]
+    assert max(paths.checkpoints()) == max(written) >= 4, "the checkpoint holds the last finished frame"
+    rerun = sphshot("run", job, "--stage", "sim", *args, check=True)
+    assert f"sim: resuming from checkpoint at frame {max(written)}" in rerun.stderr
+    assert cache.scan(spec, paths, "sim", spec.frames).valid == tuple(spec.frames)
