@@ -202,8 +202,11 @@ def read_manifest(paths: ShotPaths) -> dict:
 def record_stage(spec: ShotSpec, paths: ShotPaths, stage: str) -> None:
     """Write the stage's current hash into the manifest (atomic; idempotent across workers)."""
     manifest = read_manifest(paths)
-    manifest.setdefault("stages", {})[stage] = {
-        "hash": stage_hashes(spec)[stage], "params": spec.hashed_sections(stage)}
+    entry = json.loads(json.dumps({"hash": stage_hashes(spec)[stage], "params": spec.hashed_sections(stage)},
+                                  default=str))
+    if manifest.get("stages", {}).get(stage) == entry:
+        return                     # nothing new: a second run writes nothing
+    manifest.setdefault("stages", {})[stage] = entry
     manifest["shot"] = spec.shot.name
     paths.root.mkdir(parents=True, exist_ok=True)
     write_text_atomic(paths.manifest, json.dumps(manifest, indent=2, sort_keys=True, default=str))

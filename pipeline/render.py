@@ -80,14 +80,12 @@ class FrameRenderer:
         pv, r = self.pv, self.spec.render
         lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
         centre, size = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
-        rig = r.lights or (
-            # key, fill and rim, placed around the domain
-            type("L", (), {"position": tuple(centre + size * np.array([1.2, 2.0, 1.5])), "intensity": 0.9,
-                           "color": (1.0, 0.97, 0.92)})(),
-            type("L", (), {"position": tuple(centre + size * np.array([-1.5, 0.8, 1.0])), "intensity": 0.35,
-                           "color": (0.85, 0.9, 1.0)})(),
-            type("L", (), {"position": tuple(centre + size * np.array([0.0, 1.5, -2.0])), "intensity": 0.5,
-                           "color": (1.0, 1.0, 1.0)})(),
+        from .spec import Light
+
+        rig = r.lights or (     # key, fill and rim around the domain
+            Light(position=tuple(centre + size * np.array([1.2, 2.0, 1.5])), intensity=0.9, color=(1.0, 0.97, 0.92)),
+            Light(position=tuple(centre + size * np.array([-1.5, 0.8, 1.0])), intensity=0.35, color=(0.85, 0.9, 1.0)),
+            Light(position=tuple(centre + size * np.array([0.0, 1.5, -2.0])), intensity=0.5),
         )
         for L in rig:
             light = pv.Light(position=tuple(map(float, L.position)), focal_point=tuple(map(float, centre)),

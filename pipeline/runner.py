@@ -10,9 +10,9 @@ from .spec import ShotSpec
 from .stages import STAGE_IMPLS
 
 
-def plan_stage(spec: ShotSpec, paths: ShotPaths, stage: str, frames: list[int], force: bool) -> list[int]:
+def plan_stage(sc: cache.StageScan, paths: ShotPaths, frames: list[int], force: bool) -> list[int]:
     """Frames the stage must compute; raises StaleCacheError when it would mix parameters."""
-    sc = cache.scan(spec, paths, stage, frames)
+    stage = sc.stage
     if sc.stale and not force:
         raise StaleCacheError(
             f"{stage}: frame(s) {format_frames(sc.stale)} in {paths.stage_dir(stage)} were made with "
@@ -50,7 +50,7 @@ def run_stages(spec: ShotSpec, stages: list[str], frames: list[int], *, force: b
         for folder in (paths.stage_dir(stage), paths.checkpoint_dir, paths.root):
             cache.remove_dead_temporaries(folder)
         sc = cache.scan(spec, paths, stage, frames)
-        todo = plan_stage(spec, paths, stage, frames, force)
+        todo = plan_stage(sc, paths, frames, force)
         check_upstream(spec, paths, stage, todo)
         if force and (sc.hash_changed or sc.stale):
             cache.clear_stage(paths, stage)

@@ -30,6 +30,12 @@ NonNeg = Annotated[float, Field(ge=0)]
 Unit = Annotated[float, Field(ge=0, le=1)]
 
 
+def _check_extent(lo, hi) -> None:
+    for axis, a, b in zip("xyz", lo, hi):
+        if not b > a:
+            raise ValueError(f"max.{axis} must be > min.{axis}, got {b} <= {a}")
+
+
 class Strict(BaseModel):
     """Unknown keys rejected, no type coercion (an int is accepted where a float is asked)."""
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
@@ -85,9 +91,7 @@ class Domain(Strict):
 
     @model_validator(mode="after")
     def _extent(self):
-        for axis, lo, hi in zip("xyz", self.min, self.max):
-            if not hi > lo:
-                raise ValueError(f"max.{axis} must be > min.{axis}, got {hi} <= {lo}")
+        _check_extent(self.min, self.max)
         return self
 
 
@@ -98,9 +102,7 @@ class Block(Strict):
 
     @model_validator(mode="after")
     def _extent(self):
-        for axis, lo, hi in zip("xyz", self.min, self.max):
-            if not hi > lo:
-                raise ValueError(f"max.{axis} must be > min.{axis}, got {hi} <= {lo}")
+        _check_extent(self.min, self.max)
         return self
 
 
@@ -133,9 +135,7 @@ class BoxCollider(Collider):
 
     @model_validator(mode="after")
     def _extent(self):
-        for axis, lo, hi in zip("xyz", self.min, self.max):
-            if not hi > lo:
-                raise ValueError(f"max.{axis} must be > min.{axis}, got {hi} <= {lo}")
+        _check_extent(self.min, self.max)
         return self
 
 

@@ -193,9 +193,8 @@ def ghost_tables(density_kind: int, pressure_kind: int, h: float, radius: float,
     d = 2.0 * radius
     m = int(math.ceil(h / d)) + 1
     a = np.linspace(0.0, h, n)
-    beyond = r0 = radius + d * np.arange(m)            # offsets of ghost layers past the wall
+    beyond = radius + d * np.arange(m)                 # ghost layers past the wall, from it
     inplane = d * np.arange(-m, m + 1)
-    del r0
 
     def sums(X, Y, Z):
         R = np.sqrt(X * X + Y * Y + Z * Z)
@@ -203,10 +202,6 @@ def ghost_tables(density_kind: int, pressure_kind: int, h: float, radius: float,
         gv = np.abs(dw_np(pressure_kind, R, h)) * X / np.maximum(R, 1e-30)
         return wv.sum(axis=(-3, -2, -1)), gv.sum(axis=(-3, -2, -1))
 
-    A = a[:, None, None, None, None, None]
-    B = a[None, :, None, None, None, None]
-    C = a[None, None, :, None, None, None]
-    ii = beyond[None, None, None, :, None, None]
     # H: only the first distance matters
     hx = (a[:, None, None, None] + beyond[None, :, None, None])
     Hd, Hg = sums(hx, inplane[None, None, :, None], inplane[None, None, None, :])
@@ -215,7 +210,9 @@ def ghost_tables(density_kind: int, pressure_kind: int, h: float, radius: float,
     qy = a[None, :, None, None, None] + beyond[None, None, None, :, None]
     Qd, Qg = sums(qx, qy, inplane[None, None, None, None, :])
     # O: three distances
-    Od, Og = sums(A + ii, B + beyond[None, None, None, None, :, None], C + beyond[None, None, None, None, None, :])
+    Od, Og = sums(a[:, None, None, None, None, None] + beyond[None, None, None, :, None, None],
+                  a[None, :, None, None, None, None] + beyond[None, None, None, None, :, None],
+                  a[None, None, :, None, None, None] + beyond[None, None, None, None, None, :])
     dens = np.stack([np.broadcast_to(Hd[:, None, None], (n, n, n)),
                      np.broadcast_to(Qd[:, :, None], (n, n, n)), Od])
     grad = np.stack([np.broadcast_to(Hg[:, None, None], (n, n, n)),

@@ -34,7 +34,7 @@ def shot(tmp_path_factory):
 
 def test_full_run_writes_every_frame(shot):
     job, proc = shot
-    spec = load_spec(job, [s for s in small() if s != "--set"])
+    spec = spec_of(job, small())
     paths = cache.ShotPaths.for_spec(spec)
     for stage in cache.STAGES:
         sc = cache.scan(spec, paths, stage, spec.frames)
@@ -53,7 +53,7 @@ def test_full_run_writes_every_frame(shot):
 
 def test_second_run_does_no_work(shot):
     job, _ = shot
-    spec = load_spec(job, [s for s in small() if s != "--set"])
+    spec = spec_of(job, small())
     root = spec.output_root
     before = {s: mtimes(root / s) for s in ("sim", "surface", "render", "checkpoints")}
     proc = sphshot("run", job, *small(), check=True)
@@ -66,7 +66,7 @@ def test_second_run_does_no_work(shot):
 def test_render_key_change_leaves_sim_and_surface_valid(shot, tmp_path):
     job, _ = shot
     args = small()
-    spec = load_spec(job, [s for s in args if s != "--set"])
+    spec = spec_of(job, args)
     root = spec.output_root
     sim_before, surf_before = mtimes(root / "sim"), mtimes(root / "surface")
     changed = [*args, "--set", "render.background=[0.5,0.1,0.1]"]
@@ -107,16 +107,25 @@ def _all_final_files_complete(root: Path) -> int:
     return n
 
 
-def test_sigkill_resumes_from_checkpoint(tmp_path):
-    """Kill the sim with SIGKILL part-way; rerun resumes from the last checkpoint, never frame 1."""
+def start_sim(tmp_path, *overrides, **popen):
+    """Start `sphshot run --stage sim` of a small dam break in the background."""
     job = tmp_path / "dambreak.toml"
     job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
-    args = small("shot.frame_end=24", "shot.checkpoint_every=3")
-    spec = load_spec(job, [s for s in args if s != "--set"])
-    paths = cache.ShotPaths.for_spec(spec)
+    args = small(*overrides)
+    spec = spec_of(job, args)
     cmd = [sys.executable, "-m", "pipeline.cli", "run", str(job), "--stage", "sim", *args]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), **popen)
+    return job, args, spec, cache.ShotPaths.for_spec(spec), proc
+
+
+def spec_of(job, args):
+    return load_spec(job, [s for s in args if s != "--set"])
+
+
+def test_sigkill_resumes_from_checkpoint(tmp_path):
+    """Kill the sim with SIGKILL part-way; rerun resumes from the last checkpoint, never frame 1."""
+    job, args, spec, paths, proc = start_sim(tmp_path, "shot.frame_end=24", "shot.checkpoint_every=3",
+                                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 300
     try:
         while time.time() < deadline:
@@ -173,14 +182,8 @@ def test_dead_temporaries_are_removed_but_live_ones_kept(tmp_path):
 
 def test_sigterm_writes_checkpoint_and_exits_5(tmp_path):
     """SIGTERM (or SLURM's SIGUSR1 warning) during the sim: checkpoint, exit 5, clean resume."""
-    job = tmp_path / "dambreak.toml"
-    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
-    args = small("shot.frame_end=40", "shot.checkpoint_every=100")
-    spec = load_spec(job, [s for s in args if s != "--set"])
-    paths = cache.ShotPaths.for_spec(spec)
-    cmd = [sys.executable, "-m", "pipeline.cli", "run", str(job), "--stage", "sim", *args]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    job, args, spec, paths, proc = start_sim(tmp_path, "shot.frame_end=40", "shot.checkpoint_every=100",
+                                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 300
     while time.time() < deadline and not paths.sim_frame(4).exists():
         assert proc.poll() is None, proc.communicate()

@@ -199,8 +199,6 @@ def test_surface_tension_rounds_a_cube():
 # -------------------------------------------------------------------------------- colliders
 def test_no_particle_inside_obstacles_or_outside_containers():
     """A fast stream into a sphere, a box and a capsule inside a capsule container."""
-    from solver.sph import COLLIDER_TYPES, collider_sdf  # noqa: F401 (importable API)
-
     spec_dict = {
         "shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
         "domain": {"min": (0, 0, 0), "max": (1.0, 0.6, 0.4)},
