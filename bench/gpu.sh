@@ -21,7 +21,7 @@ for n in 50000 1000000 4000000; do
   $PY bench/solver.py --only sphshot --backend cuda --particles "$n" --radius "$(python3 -c "print(0.006*(50000/$n)**(1/3))")" --stop-at 0.02 2>&1 | grep -E "^(sphshot|#)" 
 done
 echo "## surfacing (sphshot side, Taichi on CUDA)"
-SPHSHOT_SURFACE_BACKEND=cuda $PY - <<'PY'
+$PY - <<'PY'
 import time, numpy as np
 from solver.backend import init_taichi
 print("backend", init_taichi("cuda", 0))

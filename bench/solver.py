@@ -36,7 +36,7 @@ def scene(particles: int, radius: float):
     from pipeline.spec import ShotSpec
 
     d = 2 * radius
-    # the anchor's block is 0.504 x 0.324 x 0.576 m (42 x 27 x 48 spacings of 12 mm = 54k);
+    # 42 x 26 x 46 spacings of 12 mm (50,232 particles) is closest to the anchor's 50,102;
     # scale it uniformly to the requested count, capped to the tank
     n0 = 42 * 26 * 46
     s = (particles / n0) ** (1 / 3) * 0.006 / radius
@@ -88,14 +88,13 @@ def run_sphshot(args) -> dict:
            "--threads", str(args.threads), "--particles", str(args.particles), "--radius", str(args.radius)]
     if args.phases:
         cmd.append("--phases")
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     m = re.search(r"^RESULT (\{.*\})$", proc.stdout, re.M)
     if proc.returncode != 0 or not m:
         raise SystemExit(f"sphshot child failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
     r = json.loads(m.group(1))
-    after = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    r["peak_rss_mb"] = round(max(after, before) / 1024.0, 1)
+    # the first child of this process, so the children's maximum is its own peak
+    r["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0, 1)
     return r
 
 

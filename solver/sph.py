@@ -202,9 +202,9 @@ def table3(t: ti.template(), kind: ti.i32, a: ti.f32, b: ti.f32, c: ti.f32, h: t
 
 
 @ti.func
-def domain_walls(x, dmin, dmax, h: ti.f32, T: ti.template(), G: ti.template()):
-    """Missing number density, and missing grad-W sum (pointing into the fluid), near the box
-    walls; exact at edges and corners by inclusion-exclusion (see kernels.ghost_tables)."""
+def nearest_walls(x, dmin, dmax, h: ti.f32):
+    """Per axis, the distance a (h if none is within h) to the nearer box wall and the sign s of
+    its inward normal (+1 low wall, -1 high wall, 0 none)."""
     a = vec3(h)
     s = vec3(0.0)
     for ax in ti.static(range(3)):
@@ -214,6 +214,14 @@ def domain_walls(x, dmin, dmax, h: ti.f32, T: ti.template(), G: ti.template()):
             a[ax], s[ax] = ti.max(lo, 0.0), 1.0
         elif hi < lo and hi < h:
             a[ax], s[ax] = ti.max(hi, 0.0), -1.0
+    return a, s
+
+
+@ti.func
+def domain_walls(x, dmin, dmax, h: ti.f32, T: ti.template(), G: ti.template()):
+    """Missing number density, and missing grad-W sum (pointing into the fluid), near the box
+    walls; exact at edges and corners by inclusion-exclusion (see kernels.ghost_tables)."""
+    a, s = nearest_walls(x, dmin, dmax, h)
     dens = 0.0
     grad = vec3(0.0)
     if s.norm_sqr() > 0:
@@ -426,17 +434,12 @@ def k_forces(pos: V3, vel: V3, acc: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
         a += wall * wg
         # the samples' hydrostatic pressure differences: -rho_i/(m_i delta_i^2) sum_b dp_b grad W
         hyd = vec3(0.0)
+        da, ds = nearest_walls(xi, dmin, dmax, h)
         for ax in ti.static(range(3)):
-            lo = xi[ax] - dmin[ax]
-            hi = dmax[ax] - xi[ax]
-            if lo < h and lo <= hi:
+            if ds[ax] != 0.0:
                 e = vec3(0.0)
-                e[ax] = 1.0
-                hyd += hydrostatic_wall(ti.max(lo, 0.0), e, gravity, mom, h)
-            elif hi < h:
-                e = vec3(0.0)
-                e[ax] = -1.0
-                hyd += hydrostatic_wall(ti.max(hi, 0.0), e, gravity, mom, h)
+                e[ax] = ds[ax]
+                hyd += hydrostatic_wall(da[ax], e, gravity, mom, h)
         for k in range(ctype.shape[0]):
             phi, nk = collider_sdf(ctype[k], cprm, k, xi)
             if phi < h:
