@@ -30,12 +30,12 @@ from .spec import ShotSpec
 
 STAGES = ("sim", "surface", "render")
 UPSTREAM = {"sim": None, "surface": "sim", "render": "surface"}
-_HOST = socket.gethostname().split(".")[0].replace("-", "_") or "host"
+HOST = socket.gethostname().split(".")[0].replace("-", "_") or "host"
 
 
 # ------------------------------------------------------------------------------ atomic files
 def _tmp_name(final: Path) -> Path:
-    return final.with_name(f".{final.name}.{_HOST}-{os.getpid()}.tmp")
+    return final.with_name(f".{final.name}.{HOST}-{os.getpid()}.tmp")
 
 
 @contextlib.contextmanager
@@ -73,19 +73,19 @@ def remove_dead_temporaries(folder: Path) -> int:
     removed = 0
     if not folder.is_dir():
         return 0
-    for tmp in folder.glob(f".*.{_HOST}-*.tmp"):
+    for tmp in folder.glob(f".*.{HOST}-*.tmp"):
         try:
             pid = int(tmp.name.rsplit("-", 1)[1].split(".")[0])
         except ValueError:
             continue
-        if pid == os.getpid() or not _pid_alive(pid):
+        if pid == os.getpid() or not pid_alive(pid):
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
                 removed += 1
     return removed
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -155,6 +155,11 @@ class ShotPaths:
         if self.per_fluid:
             return {f: d / f"{self.name}.{f}.{frame:04d}.{self.mesh_ext}" for f in self.fluids}
         return {None: d / f"{self.name}.{frame:04d}.{self.mesh_ext}"}
+
+    def claim(self, stage: str, frame: int | None) -> Path:
+        """Claim file of a frame (or of a whole sequential stage, frame None); see claims.py."""
+        tag = stage if frame is None else f"{frame:04d}"
+        return self.root / stage / f".{self.name}.{tag}.claim"
 
     def render_frame(self, frame: int) -> Path:
         return self.root / "render" / f"{self.name}.{frame:04d}.png"
@@ -244,6 +249,6 @@ def clear_stage(paths: ShotPaths, stage: str) -> None:
     for folder in folders:
         if folder.is_dir():
             for p in folder.iterdir():
-                if p.is_file():
+                if p.is_file() and p.suffix != ".claim":   # live workers' claims stay theirs
                     with contextlib.suppress(FileNotFoundError):
                         p.unlink()

@@ -5,6 +5,7 @@ import argparse
 import logging
 import os
 import sys
+from pathlib import Path
 
 from . import errors
 from .errors import SphshotError, UsageError
@@ -15,7 +16,7 @@ exit codes:
   {errors.EXIT_FAILURE}  runtime failure (unstable solver, failed frame, I/O error)
   {errors.EXIT_USAGE}  bad job file, --set, frame range or arguments; nothing was written
   {errors.EXIT_STALE}  cached frames were made with other parameters (use --force or a new shot.version)
-  {errors.EXIT_WAITING}  waiting on an upstream frame (e.g. sim frame N); retry later
+  {errors.EXIT_WAITING}  waiting on an upstream frame (sim frame N) or on another worker's sim; retry later
   {errors.EXIT_INTERRUPTED}  interrupted (SIGTERM/SIGUSR1/SIGINT) after a checkpoint; run again to resume
 """
 
@@ -46,11 +47,42 @@ def build_parser() -> argparse.ArgumentParser:
     common(r)
     r.add_argument("--stage", choices=STAGE_CHOICES, default="all")
     r.add_argument("--frames", help="A, A-B or A-BxSTEP (default: the whole shot)")
+    r.add_argument("--chunk", type=_positive, metavar="N",
+                   help="run N frames from the start frame given by --frames, CUE_IFRAME or "
+                        "SLURM_ARRAY_TASK_ID (farm array tasks)")
     r.add_argument("--force", action="store_true", help="recompute frames even when valid")
+    r.add_argument("--executor", choices=("serial", "dask"), default="serial",
+                   help="serial: stage after stage here; dask: surface and render tasks fan out over "
+                        "a Dask cluster, streaming behind the sim (default: serial)")
+    r.add_argument("--scheduler", metavar="ADDRESS",
+                   help="with --executor dask: an existing scheduler (tcp://host:8786) instead of a "
+                        "local cluster")
+    r.add_argument("--workers", type=_positive, metavar="N",
+                   help="with --executor dask and no --scheduler: local worker processes "
+                        "(default: one per core)")
+
+    e = sub.add_parser("export", help="write a farm job (SLURM, OpenCue, OpenJD) that runs this shot",
+                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    common(e)
+    e.add_argument("--to", choices=("slurm", "opencue", "openjd"), required=True)
+    e.add_argument("--chunk", type=_positive, default=4, metavar="N",
+                   help="frames per surface/render task (default: 4)")
+    e.add_argument("-o", "--output", metavar="FILE",
+                   help="where to write it (default: <shot folder>/farm/<name>.<slurm.sh|cue.xml|openjd.yaml>)")
 
     s = sub.add_parser("status", help="per stage: frames valid, missing, stale, and where")
     common(s)
     return p
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise UsageError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise UsageError(f"expected a positive integer, got {value}")
+    return value
 
 
 def _stages(choice: str) -> list[str]:
@@ -90,24 +122,41 @@ def cmd_status(args) -> int:
 
 def cmd_run(args) -> int:
     from .executor import make_executor
-    from .frames import parse_frames
+    from .frames import format_frames, select_frames
     from .progress import Progress
     from .runner import run_stages
     from .spec import load_spec
     spec = load_spec(args.job, args.overrides)
-    frames = parse_frames(args.frames, spec.frames) if args.frames else list(spec.frames)
-    executor = make_executor("serial")
+    frames, source = select_frames(args.frames, args.chunk, spec.frames, os.environ)
+    kind = "dask" if args.scheduler else args.executor
+    if args.workers and (kind != "dask" or args.scheduler):
+        raise UsageError("--workers: only with --executor dask and no --scheduler")
+    progress = Progress()
+    if source:
+        progress.line(f"sphshot: frames {format_frames(frames)} from {source}")
+    executor = make_executor(kind, scheduler=args.scheduler, workers=args.workers)
     try:
         run_stages(spec, _stages(args.stage), frames, force=args.force, executor=executor,
-                   progress=Progress())
+                   progress=progress)
     finally:
         executor.close()
+    return 0
+
+
+def cmd_export(args) -> int:
+    from .export import export_job
+    from .spec import load_spec
+    spec = load_spec(args.job, args.overrides)
+    path = export_job(spec, Path(args.job).resolve(), args.overrides, args.to, args.chunk,
+                      Path(args.output) if args.output else None)
+    print(f"sphshot: wrote {args.to} job {path}")
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=os.environ.get("SPHSHOT_LOG", "INFO"), format="sphshot: %(message)s",
                         stream=sys.stderr)
+    logging.getLogger("distributed").setLevel(max(logging.WARNING, logging.getLogger().level))
     os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
     parser = build_parser()
     try:
@@ -115,7 +164,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.command is None:
             parser.print_help()
             return errors.EXIT_USAGE
-        handler = {"validate": cmd_validate, "run": cmd_run, "status": cmd_status}[args.command]
+        handler = {"validate": cmd_validate, "run": cmd_run, "status": cmd_status,
+                   "export": cmd_export}[args.command]
         return handler(args)
     except SphshotError as err:
         for line in str(err).splitlines() or [err.__class__.__name__]:

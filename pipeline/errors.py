@@ -10,7 +10,8 @@ EXIT_OK = 0            # every requested frame is valid on disk
 EXIT_FAILURE = 1       # runtime failure (solver unstable, a frame failed, I/O error)
 EXIT_USAGE = 2         # bad job file, bad --set, bad frame range, missing input file
 EXIT_STALE = 3         # cached frames were made with other parameters; use --force or a new version
-EXIT_WAITING = 4       # an upstream frame (e.g. sim frame N) is not there yet; a farm retries later
+EXIT_WAITING = 4       # an upstream frame (sim frame N) is not there yet, or another worker holds
+                       # the stage; a farm retries later
 EXIT_INTERRUPTED = 5   # stopped by SIGTERM/SIGUSR1/SIGINT after writing a checkpoint; run again to resume
 
 
@@ -38,6 +39,11 @@ class StaleCacheError(SphshotError):
 
 
 class WaitingOnUpstream(SphshotError):
+    exit_code = EXIT_WAITING
+
+
+class Busy(SphshotError):
+    """Another live worker holds this shot's sequential stage (the sim)."""
     exit_code = EXIT_WAITING
 
 

@@ -44,3 +44,66 @@ def format_frames(frames) -> str:
         if f is not None:
             start = prev = f
     return ",".join(out)
+
+
+def chunk_from(first: int, size: int, frames, what: str) -> list[int]:
+    """`size` frames of `frames` (ascending) starting at `first`, which must be one of them."""
+    frames = list(frames)
+    if first not in frames:
+        raise UsageError(f"{what}: frame {first} is outside the shot's frame range "
+                         f"{format_frames(frames)}")
+    return [f for f in frames if f >= first][:size]
+
+
+def _env_int(env, name: str, minimum: int) -> int:
+    try:
+        value = int(env[name])
+    except ValueError:
+        raise UsageError(f"{name}: expected an integer, got {env[name]!r}") from None
+    if value < minimum:
+        raise UsageError(f"{name}: expected an integer >= {minimum}, got {value}")
+    return value
+
+
+def frames_from_env(env, shot: range, chunk: int | None) -> tuple[list[int], str] | None:
+    """The frames of a farm task from its environment, or None outside a farm task.
+
+    - OpenCue: ``CUE_IFRAME`` is the chunk's first frame, ``CUE_CHUNK`` its size and
+      ``CUE_RANGE`` the layer's frame range (a chunk takes the next frames of that range).
+    - SLURM array jobs: ``SLURM_ARRAY_TASK_ID`` is the chunk's first frame (submit with
+      ``--array=START-END:CHUNK``) and the chunk size is ``--chunk`` or ``SPHSHOT_CHUNK``.
+
+    Returns the frames and a line saying where they came from.
+    """
+    if "CUE_IFRAME" in env:
+        first = _env_int(env, "CUE_IFRAME", -10**9)
+        size = chunk or (_env_int(env, "CUE_CHUNK", 1) if env.get("CUE_CHUNK") else 1)
+        layer = parse_frames(env["CUE_RANGE"], shot, "CUE_RANGE") if env.get("CUE_RANGE") else list(shot)
+        frames = chunk_from(first, size, layer, "CUE_IFRAME")
+        return frames, f"CUE_IFRAME={first} (chunk {size})"
+    if "SLURM_ARRAY_TASK_ID" in env:
+        first = _env_int(env, "SLURM_ARRAY_TASK_ID", -10**9)
+        size = chunk or (_env_int(env, "SPHSHOT_CHUNK", 1) if env.get("SPHSHOT_CHUNK") else 1)
+        frames = chunk_from(first, size, shot, "SLURM_ARRAY_TASK_ID")
+        return frames, f"SLURM_ARRAY_TASK_ID={first} (chunk {size})"
+    return None
+
+
+def select_frames(arg: str | None, chunk: int | None, shot: range, env) -> tuple[list[int], str | None]:
+    """The frames a `sphshot run` works on: --frames, else the farm's environment, else the shot.
+
+    With --chunk N, --frames names the chunk's first frame only.
+    """
+    if arg is not None:
+        if chunk:
+            m = _PART.match(arg)
+            if not m or m.group(2) is not None or "," in arg:
+                raise UsageError(f"--frames: with --chunk, expected a single start frame, got {arg!r}")
+            return chunk_from(int(m.group(1)), chunk, shot, "--frames"), None
+        return parse_frames(arg, shot), None
+    found = frames_from_env(env, shot, chunk)
+    if found is not None:
+        return found
+    if chunk:
+        raise UsageError("--chunk: needs a start frame from --frames, CUE_IFRAME or SLURM_ARRAY_TASK_ID")
+    return list(shot), None

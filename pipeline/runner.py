@@ -1,9 +1,13 @@
-"""Run stages over frames: decide what is valid, stale or missing, and refuse to mix."""
+"""Run stages over frames: decide what is valid, stale or missing, refuse to mix, then hand
+the work to an executor and check that every requested frame is valid on disk afterwards."""
 from __future__ import annotations
 
-from . import cache
+import time
+
+from . import cache, claims
 from .cache import ShotPaths
 from .errors import StageError, StaleCacheError, WaitingOnUpstream
+from .executor import SerialExecutor, StagePlan
 from .frames import format_frames
 from .progress import Progress
 from .spec import ShotSpec
@@ -38,35 +42,50 @@ def check_upstream(spec: ShotSpec, paths: ShotPaths, stage: str, frames: list[in
             f"missing: {format_frames(sc.missing)}); run --stage {up} first")
 
 
-def run_stages(spec: ShotSpec, stages: list[str], frames: list[int], *, force: bool = False,
-               executor=None, progress: Progress | None = None) -> None:
-    from .executor import SerialExecutor
+def plan_run(spec: ShotSpec, paths: ShotPaths, stages: list[str], frames: list[int],
+             force: bool) -> list[StagePlan]:
+    """Scan and plan every stage before any work starts, so a stale cache refuses up front.
 
-    executor = executor or SerialExecutor()
-    progress = progress or Progress()
-    paths = ShotPaths.for_spec(spec)
-    for stage in stages:
-        impl = STAGE_IMPLS[stage]
+    Only the first stage's upstream must already be on disk: the frames of later stages'
+    upstreams are either valid or computed earlier in this same run.
+    """
+    plans = []
+    for i, stage in enumerate(stages):
         for folder in (paths.stage_dir(stage), paths.checkpoint_dir, paths.root):
             cache.remove_dead_temporaries(folder)
+        claims.remove_dead_claims(paths.stage_dir(stage))
         sc = cache.scan(spec, paths, stage, frames)
         todo = plan_stage(sc, paths, frames, force)
-        check_upstream(spec, paths, stage, todo)
+        if i == 0:
+            check_upstream(spec, paths, stage, todo)
         if force and (sc.hash_changed or sc.stale):
             cache.clear_stage(paths, stage)
         cache.record_stage(spec, paths, stage)
-        if todo:
-            progress.start(stage, len(todo))
-            try:
-                executor.run_stage(impl, spec, todo, paths, progress)
-            finally:
-                progress.finish()
-        else:
-            progress.line(f"sphshot: {stage}: all {len(frames)} frame(s) valid, nothing to do")
-        after = cache.scan(spec, paths, stage, frames)
+        plans.append(StagePlan(stage, tuple(todo)))
+    return plans
+
+
+def run_stages(spec: ShotSpec, stages: list[str], frames: list[int], *, force: bool = False,
+               executor=None, progress: Progress | None = None) -> None:
+    executor = executor or SerialExecutor()
+    progress = progress or Progress()
+    paths = ShotPaths.for_spec(spec)
+    plans = plan_run(spec, paths, stages, frames, force)
+    for plan in plans:
+        if not plan.todo:
+            progress.line(f"sphshot: {plan.name}: all {len(frames)} frame(s) valid, nothing to do")
+    since = time.time() if force else None     # with --force only files newer than this count
+    progress.begin({p.name: len(p.todo) for p in plans})
+    try:
+        executor.run(spec, paths, plans, progress, since)
+    finally:
+        progress.end()
+    for plan in plans:
+        impl = STAGE_IMPLS[plan.name]
+        after = cache.scan(spec, paths, plan.name, frames)
         if after.missing or after.stale:
             bad = after.missing + after.stale
-            raise StageError(f"{stage}: frame(s) {format_frames(bad)} not valid on disk after the run")
-        if impl.finalize is not None and not cache.scan(spec, paths, stage, spec.frames).missing:
-            for path in impl.finalize(spec, paths, force=force or bool(todo)):
+            raise StageError(f"{plan.name}: frame(s) {format_frames(bad)} not valid on disk after the run")
+        if impl.finalize is not None and not cache.scan(spec, paths, plan.name, spec.frames).missing:
+            for path in impl.finalize(spec, paths, force=force or bool(plan.todo)):
                 progress.file_written(path)

@@ -39,13 +39,15 @@ def init_taichi(backend: str = "auto", threads: int = 0) -> str:
     if backend == "auto" and not _gpu_device_present():
         # Mesa's lavapipe is a Vulkan device too, but a software one: slower than Taichi's CPU path
         order = ["cpu"]
-    n_threads = threads or os.cpu_count() or 1
+    # SPHSHOT_WORKER_THREADS: set by the Dask executor so that its n worker processes on n
+    # cores take one thread each; a thread count in the job file wins.
+    n_threads = threads or int(os.environ.get("SPHSHOT_WORKER_THREADS", 0)) or os.cpu_count() or 1
     chosen = None
     for name in order:
         arch = {"cuda": ti.cuda, "vulkan": ti.vulkan, "cpu": ti.cpu}[name]
         with contextlib.redirect_stdout(io.StringIO()):   # ti.init prints "Starting on arch=..."
             ti.init(arch=arch, cpu_max_num_threads=n_threads, default_fp=ti.f32, default_ip=ti.i32,
-                    log_level=ti.ERROR, random_seed=0, offline_cache=True)
+                    random_seed=0, offline_cache=True)   # log level: TI_LOG_LEVEL, above
         got = ti.lang.impl.current_cfg().arch
         if (name == "cpu" and got in (ti.x64, ti.arm64)) or got == arch:
             chosen = name

@@ -171,8 +171,8 @@ def test_atomic_path_never_publishes_a_partial_file(tmp_path):
 
 
 def test_dead_temporaries_are_removed_but_live_ones_kept(tmp_path):
-    dead = tmp_path / f".a.0001.h5.{cache._HOST}-999999999.tmp"
-    live = tmp_path / f".a.0002.h5.{cache._HOST}-{os.getppid()}.tmp"
+    dead = tmp_path / f".a.0001.h5.{cache.HOST}-999999999.tmp"
+    live = tmp_path / f".a.0002.h5.{cache.HOST}-{os.getppid()}.tmp"
     other_host = tmp_path / ".a.0003.h5.otherhost-1.tmp"
     for p in (dead, live, other_host):
         p.write_text("x")

@@ -1,0 +1,166 @@
+"""Farm-manager job descriptions that run a shot with the same CLI, chunk by chunk.
+
+Every export has the same shape: the sim as one task (it is sequential; give it the GPU node),
+then surface tasks over chunks of frames once the sim is done, then render tasks, each waiting
+on the surface task of the same chunk. A task is ``sphshot run JOB --stage S`` over its chunk,
+so it skips frames already valid, claims the ones it computes, and exits 0 only when every
+frame of its chunk is valid on disk.
+
+- ``slurm``: a bash script that submits three ``sbatch`` jobs: the sim (SIGUSR1 two minutes
+  before its time limit makes it checkpoint and exit 5), a surface array job
+  (``--array=START-END:CHUNK``, the task id is the chunk's first frame) after the sim, and a
+  render array job whose task i waits on surface task i (``aftercorr``).
+- ``opencue``: a job spec XML (cjsl 1.14) with three layers; render depends on surface frame
+  by frame (``FRAME_BY_FRAME``), surface on the whole sim layer (``LAYER_ON_LAYER``).
+- ``openjd``: an Open Job Description template (jobtemplate-2023-09) with three steps and a
+  ``Frame`` task parameter stepping by the chunk size; cancelation sends SIGTERM first, which
+  makes the sim checkpoint.
+"""
+from __future__ import annotations
+
+import getpass
+import json
+import shlex
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+from .cache import write_text_atomic
+from .spec import ShotSpec
+
+SUFFIX = {"slurm": "slurm.sh", "opencue": "cue.xml", "openjd": "openjd.json"}
+
+
+def sphshot_command() -> list[str]:
+    """How a farm node starts this same install of sphshot."""
+    script = Path(sys.executable).with_name("sphshot")       # the venv's console script
+    if script.exists():
+        return [str(script)]
+    return [sys.executable, "-m", "pipeline.cli"]
+
+
+def run_args(job: Path, overrides: list[str], stage: str) -> list[str]:
+    args = ["run", str(job)]
+    for kv in overrides:
+        args += ["--set", kv]
+    return args + ["--stage", stage]
+
+
+def export_job(spec: ShotSpec, job: Path, overrides: list[str], to: str, chunk: int,
+               output: Path | None = None) -> Path:
+    out = output or spec.output_root / "farm" / f"{spec.shot.name}.{SUFFIX[to]}"
+    text = {"slurm": slurm_script, "opencue": opencue_xml, "openjd": openjd_template}[to](
+        spec, job, overrides, chunk)
+    write_text_atomic(Path(out), text)
+    if to == "slurm":
+        Path(out).chmod(0o755)
+    return Path(out)
+
+
+def _job_name(spec: ShotSpec) -> str:
+    return f"{spec.shot.name}_v{spec.shot.version:03d}"
+
+
+# ----------------------------------------------------------------------------------- SLURM
+def slurm_script(spec: ShotSpec, job: Path, overrides: list[str], chunk: int) -> str:
+    cmd = sphshot_command()
+    a, b = spec.shot.frame_start, spec.shot.frame_end
+    name = _job_name(spec)
+    logs = spec.output_root / "farm" / "logs"
+
+    def wrap(stage: str, extra: list[str] = ()) -> str:
+        return shlex.quote("exec " + shlex.join(cmd + run_args(job, overrides, stage) + list(extra)))
+
+    return f"""#!/usr/bin/env bash
+# SLURM submission for sphshot shot {spec.shot.name} v{spec.shot.version:03d}, frames {a}-{b}
+# (written by `sphshot export --to slurm --chunk {chunk}`). Run it with bash where sbatch works.
+# It submits three jobs:
+#   sim      one task; SIGUSR1 two minutes before the time limit makes it write a checkpoint
+#            and exit 5; submit this script again to resume (valid frames are skipped)
+#   surface  an array job, one task per {chunk} frames (task id = first frame), after the sim
+#   render   an array job; task i starts when surface task i succeeded (aftercorr)
+# Site options (partition, account, time, GPUs) go in SPHSHOT_SBATCH_SIM and SPHSHOT_SBATCH,
+# e.g. SPHSHOT_SBATCH_SIM="--gres=gpu:1 --time=4:00:00".
+set -euo pipefail
+SBATCH="${{SBATCH:-sbatch}}"
+LOGS={shlex.quote(str(logs))}
+mkdir -p "$LOGS"
+common=(--parsable ${{SPHSHOT_SBATCH:-}})
+
+sim=$("$SBATCH" "${{common[@]}}" --job-name={name}.sim --output="$LOGS/%x.%j.log" \\
+    --signal=B:USR1@120 ${{SPHSHOT_SBATCH_SIM:-}} --wrap={wrap("sim")})
+sim=${{sim%%;*}}
+
+surface=$("$SBATCH" "${{common[@]}}" --job-name={name}.surface --output="$LOGS/%x.%A_%a.log" \\
+    --array={a}-{b}:{chunk} --dependency=afterok:$sim --wrap={wrap("surface", ["--chunk", str(chunk)])})
+surface=${{surface%%;*}}
+
+render=$("$SBATCH" "${{common[@]}}" --job-name={name}.render --output="$LOGS/%x.%A_%a.log" \\
+    --array={a}-{b}:{chunk} --dependency=aftercorr:$surface --wrap={wrap("render", ["--chunk", str(chunk)])})
+render=${{render%%;*}}
+
+echo "sphshot: submitted {name}: sim $sim, surface $surface, render $render"
+"""
+
+
+# --------------------------------------------------------------------------------- OpenCue
+def opencue_xml(spec: ShotSpec, job: Path, overrides: list[str], chunk: int) -> str:
+    cmd = sphshot_command()
+    name = _job_name(spec)
+    a, b = spec.shot.frame_start, spec.shot.frame_end
+    root = ET.Element("spec")
+    for tag, text in (("show", "sphshot"), ("shot", spec.shot.name), ("user", getpass.getuser())):
+        ET.SubElement(root, tag).text = text
+    job_el = ET.SubElement(root, "job", name=name)
+    for tag, text in (("paused", "False"), ("maxretries", "2"), ("autoeat", "False")):
+        ET.SubElement(job_el, tag).text = text
+    layers = ET.SubElement(job_el, "layers")
+
+    def layer(stage: str, frames: str, size: int, extra: list[str]) -> None:
+        el = ET.SubElement(layers, "layer", name=stage, type="Render")
+        ET.SubElement(el, "cmd").text = shlex.join(cmd + run_args(job, overrides, stage) + extra)
+        ET.SubElement(el, "range").text = frames
+        ET.SubElement(el, "chunk").text = str(size)
+        services = ET.SubElement(el, "services")
+        ET.SubElement(services, "service").text = "shell"
+
+    # the sim is one frame of its layer running the whole shot
+    layer("sim", str(a), 1, [])
+    chunked = ["--frames", "#FRAME_START#-#FRAME_END#"]
+    layer("surface", f"{a}-{b}", chunk, chunked)
+    layer("render", f"{a}-{b}", chunk, chunked)
+    depends = ET.SubElement(root, "depends")
+    for kind, dep, on in (("LAYER_ON_LAYER", "surface", "sim"), ("FRAME_BY_FRAME", "render", "surface")):
+        d = ET.SubElement(depends, "depend", type=kind, anyframe="False")
+        for tag, text in (("depjob", name), ("deplayer", dep), ("onjob", name), ("onlayer", on)):
+            ET.SubElement(d, tag).text = text
+    ET.indent(root)
+    return ('<?xml version="1.0"?>\n'
+            '<!DOCTYPE spec PUBLIC "SPI Cue Specification Language" '
+            '"http://localhost:8080/spcue/dtd/cjsl-1.14.dtd">\n'
+            + ET.tostring(root, encoding="unicode") + "\n")
+
+
+# ---------------------------------------------------------------------------------- OpenJD
+def openjd_template(spec: ShotSpec, job: Path, overrides: list[str], chunk: int) -> str:
+    cmd = sphshot_command()
+    a, b = spec.shot.frame_start, spec.shot.frame_end
+
+    def action(stage: str, extra: list[str]) -> dict:
+        return {"onRun": {"command": cmd[0], "args": cmd[1:] + run_args(job, overrides, stage) + extra,
+                          "cancelation": {"mode": "NOTIFY_THEN_TERMINATE", "notifyPeriodInSeconds": 120}}}
+
+    frame_param = {"taskParameterDefinitions": [{"name": "Frame", "type": "INT", "range": f"{a}-{b}:{chunk}"}]}
+    chunked = ["--frames", "{{Task.Param.Frame}}", "--chunk", str(chunk)]
+    template = {
+        "specificationVersion": "jobtemplate-2023-09",
+        "name": f"sphshot {spec.shot.name} v{spec.shot.version:03d}",
+        "steps": [
+            {"name": "sim", "script": {"actions": action("sim", [])}},
+            {"name": "surface", "dependencies": [{"dependsOn": "sim"}], "parameterSpace": frame_param,
+             "script": {"actions": action("surface", chunked)}},
+            {"name": "render", "dependencies": [{"dependsOn": "surface"}], "parameterSpace": frame_param,
+             "script": {"actions": action("render", chunked)}},
+        ],
+    }
+    return json.dumps(template, indent=2) + "\n"
