@@ -117,7 +117,7 @@ class DaskExecutor:
         self.cluster = None
         if scheduler:
             try:
-                self.client = Client(scheduler, timeout="20s")
+                self.client = Client(scheduler, timeout="10s")
             except (OSError, TimeoutError) as exc:
                 raise StageError(f"--scheduler: cannot reach the Dask scheduler at {scheduler} ({exc})") from None
         else:
