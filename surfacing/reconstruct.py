@@ -12,8 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from solver import kernels as K
-
 log = logging.getLogger("sphshot")
 
 
@@ -57,13 +55,13 @@ def particle_volumes(data: dict, attrs: dict) -> np.ndarray:
 
 def colour_field(positions, velocities, volumes, cell: float, support: float) -> Field:
     """Splat onto the nodes covering the particles' bounds plus one support (and a spare node)."""
-    from .splat import splat
+    from .splat import splat     # Taichi: imported here so that reading meshes (render) stays light
 
     margin = support + 2 * cell
     lo = np.floor((positions.min(0) - margin) / cell).astype(int)
     hi = np.ceil((positions.max(0) + margin) / cell).astype(int)
     shape = tuple(int(v) for v in hi - lo + 1)
-    c, u = splat(positions, velocities, volumes, lo * cell, shape, cell, support, K.CUBIC)
+    c, u = splat(positions, velocities, volumes, lo * cell, shape, cell, support)   # cubic spline
     return Field(c, u, lo, cell)
 
 
