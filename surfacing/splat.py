@@ -20,25 +20,46 @@ G3V = ti.types.ndarray(dtype=vec3, ndim=3)
 @ti.kernel
 def k_splat(pos: V3, vel: V3, vol: F1, origin: vec3, cell: ti.f32, h: ti.f32,
             colour: G3, momentum: G3V, kern: ti.template()):
+    """Each particle adds into the nodes inside its support sphere. The loops run over the
+    sphere, row by row (the k range of each (i, j) column from the remaining radius), not over
+    its bounding cube, which would be 3.5x the iterations for nothing."""
     nx, ny, nz = colour.shape
-    reach = ti.cast(ti.ceil(h / cell), ti.i32)
     for p in pos:
         x = pos[p]
-        base = ti.cast(ti.round((x - origin) / cell), ti.i32)
-        for di, dj, dk in ti.ndrange((-reach, reach + 1), (-reach, reach + 1), (-reach, reach + 1)):
-            i, j, k = base.x + di, base.y + dj, base.z + dk
-            if 0 <= i < nx and 0 <= j < ny and 0 <= k < nz:
-                node = origin + cell * vec3(i, j, k)
-                wgt = vol[p] * K.w(kern, (node - x).norm(), h)
-                if wgt > 0.0:
-                    ti.atomic_add(colour[i, j, k], wgt)
-                    ti.atomic_add(momentum[i, j, k], wgt * vel[p])
+        g = (x - origin) / cell                     # the particle in node units
+        i0 = ti.max(ti.cast(ti.ceil(g.x - h / cell), ti.i32), 0)
+        i1 = ti.min(ti.cast(ti.floor(g.x + h / cell), ti.i32), nx - 1)
+        for i in range(i0, i1 + 1):
+            dx = origin.x + cell * i - x.x
+            rem_x = h * h - dx * dx
+            if rem_x > 0.0:
+                ry = ti.sqrt(rem_x) / cell
+                j0 = ti.max(ti.cast(ti.ceil(g.y - ry), ti.i32), 0)
+                j1 = ti.min(ti.cast(ti.floor(g.y + ry), ti.i32), ny - 1)
+                for j in range(j0, j1 + 1):
+                    dy = origin.y + cell * j - x.y
+                    rem = rem_x - dy * dy
+                    if rem > 0.0:
+                        rz = ti.sqrt(rem) / cell
+                        k0 = ti.max(ti.cast(ti.ceil(g.z - rz), ti.i32), 0)
+                        k1 = ti.min(ti.cast(ti.floor(g.z + rz), ti.i32), nz - 1)
+                        for k in range(k0, k1 + 1):
+                            dz = origin.z + cell * k - x.z
+                            r2 = dx * dx + dy * dy + dz * dz
+                            if r2 < h * h:              # round-off at the sphere's rim
+                                wgt = vol[p] * K.w(kern, ti.sqrt(r2), h)
+                                ti.atomic_add(colour[i, j, k], wgt)
+                                ti.atomic_add(momentum[i, j, k], wgt * vel[p])
 
 
 def splat(positions: np.ndarray, velocities: np.ndarray, volumes: np.ndarray, origin: np.ndarray,
           shape: tuple[int, int, int], cell: float, support: float, kernel: int = K.CUBIC):
     """Return (colour, velocity) node arrays of `shape`, node (i,j,k) at origin + cell*(i,j,k)."""
     n = len(positions)
+    # particles in grid order, so that consecutive particles add into the same cache lines
+    key = np.floor((positions - origin) / support).astype(np.int64)
+    order = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
+    positions, velocities, volumes = positions[order], velocities[order], volumes[order]
     pos = ti.Vector.ndarray(3, ti.f32, shape=n)
     vel = ti.Vector.ndarray(3, ti.f32, shape=n)
     vol = ti.ndarray(ti.f32, shape=n)
