@@ -165,9 +165,6 @@ class FrameClaims:
             yield frame
         self._release_held()
 
-    def __len__(self) -> int:
-        return len(self.frames)
-
     def _release_held(self) -> None:
         if self._held is not None:
             release(self.paths.claim(self.stage, self._held))

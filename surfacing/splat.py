@@ -17,6 +17,12 @@ G3 = ti.types.ndarray(dtype=ti.f32, ndim=3)
 G3V = ti.types.ndarray(dtype=vec3, ndim=3)
 
 
+@ti.func
+def _span(g: ti.f32, reach: ti.f32, n: ti.i32):
+    """First and last node index within `reach` (node units) of `g`, clipped to [0, n)."""
+    return ti.max(ti.cast(ti.ceil(g - reach), ti.i32), 0), ti.min(ti.cast(ti.floor(g + reach), ti.i32), n - 1)
+
+
 @ti.kernel
 def k_splat(pos: V3, vel: V3, vol: F1, origin: vec3, cell: ti.f32, h: ti.f32,
             colour: G3, momentum: G3V, kern: ti.template()):
@@ -27,22 +33,17 @@ def k_splat(pos: V3, vel: V3, vol: F1, origin: vec3, cell: ti.f32, h: ti.f32,
     for p in pos:
         x = pos[p]
         g = (x - origin) / cell                     # the particle in node units
-        i0 = ti.max(ti.cast(ti.ceil(g.x - h / cell), ti.i32), 0)
-        i1 = ti.min(ti.cast(ti.floor(g.x + h / cell), ti.i32), nx - 1)
+        i0, i1 = _span(g.x, h / cell, nx)
         for i in range(i0, i1 + 1):
             dx = origin.x + cell * i - x.x
             rem_x = h * h - dx * dx
             if rem_x > 0.0:
-                ry = ti.sqrt(rem_x) / cell
-                j0 = ti.max(ti.cast(ti.ceil(g.y - ry), ti.i32), 0)
-                j1 = ti.min(ti.cast(ti.floor(g.y + ry), ti.i32), ny - 1)
+                j0, j1 = _span(g.y, ti.sqrt(rem_x) / cell, ny)
                 for j in range(j0, j1 + 1):
                     dy = origin.y + cell * j - x.y
                     rem = rem_x - dy * dy
                     if rem > 0.0:
-                        rz = ti.sqrt(rem) / cell
-                        k0 = ti.max(ti.cast(ti.ceil(g.z - rz), ti.i32), 0)
-                        k1 = ti.min(ti.cast(ti.floor(g.z + rz), ti.i32), nz - 1)
+                        k0, k1 = _span(g.z, ti.sqrt(rem) / cell, nz)
                         for k in range(k0, k1 + 1):
                             dz = origin.z + cell * k - x.z
                             r2 = dx * dx + dy * dy + dz * dz

@@ -46,3 +46,9 @@ def small(*extra: str) -> list[str]:
     for kv in [*SMALL, "shot.output=\"out\"", *extra]:
         out += ["--set", kv]
     return out
+
+
+def spec_of(job, args):
+    """The ShotSpec a `sphshot` call with these `--set` arguments sees."""
+    from pipeline.spec import load_spec
+    return load_spec(job, [s for s in args if s != "--set"])

@@ -18,17 +18,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import ROOT, small, sphshot
+from conftest import ROOT, small, spec_of, sphshot
 from pipeline import cache, claims
 from pipeline.errors import UsageError
 from pipeline.frames import select_frames
-from pipeline.spec import load_spec
 
 SHOT = range(1, 49)
-
-
-def spec_of(job, args):
-    return load_spec(job, [s for s in args if s != "--set"])
 
 
 # ------------------------------------------------------------------------------ frame ranges

@@ -11,9 +11,8 @@ from pathlib import Path
 import h5py
 import pytest
 
-from conftest import ROOT, small, sphshot
+from conftest import ROOT, small, spec_of, sphshot
 from pipeline import cache
-from pipeline.spec import load_spec
 
 pytestmark = pytest.mark.slow
 
@@ -116,10 +115,6 @@ def start_sim(tmp_path, *overrides, **popen):
     cmd = [sys.executable, "-m", "pipeline.cli", "run", str(job), "--stage", "sim", *args]
     proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), **popen)
     return job, args, spec, cache.ShotPaths.for_spec(spec), proc
-
-
-def spec_of(job, args):
-    return load_spec(job, [s for s in args if s != "--set"])
 
 
 def test_sigkill_resumes_from_checkpoint(tmp_path):
