@@ -172,7 +172,7 @@ class DaskExecutor:
                 failures.append(f"{stage} frame {frame}: {type(exc).__name__}: {exc}")
 
         def harvest() -> None:
-            for fut in [futures[key] for key in pending.values()]:
+            for fut in [futures[sf] for sf in pending.values()]:
                 if fut.done():
                     handle(fut)
 
@@ -199,7 +199,7 @@ class DaskExecutor:
                 raise
             except SphshotError as exc:
                 error = exc                    # the frames published before it still finish
-        for fut in as_completed([futures[key] for key in pending.values()]):
+        for fut in as_completed([futures[sf] for sf in pending.values()]):
             handle(fut)
         if error is not None:
             raise error
