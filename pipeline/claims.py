@@ -44,14 +44,14 @@ def read_owner(claim: Path) -> Owner | None:
         return None
 
 
-def claim_is_dead(claim: Path, now: float | None = None) -> bool:
+def claim_is_dead(claim: Path) -> bool:
     owner = read_owner(claim)
     if owner is None:                      # vanished, or a half-written claim: look again later
         return False
     if owner.host == HOST:
         return not pid_alive(owner.pid)
     try:
-        age = (now or time.time()) - claim.stat().st_mtime
+        age = time.time() - claim.stat().st_mtime
     except FileNotFoundError:
         return False
     return age > CLAIM_STALE_S
@@ -105,7 +105,7 @@ class FrameClaims:
 
         with FrameClaims(paths, "render", todo) as claims:
             stage.run(spec, claims, paths, progress)    # the stage loops `for frame in claims`
-            claims.wait_for_others(...)                  # frames other workers were computing
+            orphaned = claims.wait_for_others()         # frames other workers were computing
 
     The claim on a frame is released when the stage asks for the next frame (it has
     published the previous one by then) and, at the latest, when the block exits.
@@ -171,11 +171,11 @@ class FrameClaims:
             self._held = None
 
     # ------------------------------------------------------------------------------- waiting
-    def wait_for_others(self, poll_s: float = 0.5, on_done=None) -> list[int]:
-        """Wait until every deferred frame is published by its owner.
+    def wait_for_others(self, poll_s: float = 0.5) -> list[int]:
+        """Wait until every deferred frame is published by its owner (then in `by_others`).
 
         Returns the deferred frames whose owner died meanwhile: the caller computes them (with
-        a fresh FrameClaims). ``on_done(frame)`` is called for each frame another worker published.
+        a fresh FrameClaims).
         """
         pending = list(self.deferred)
         self.deferred = []
@@ -185,8 +185,6 @@ class FrameClaims:
             for frame in pending:
                 if self.done(frame):
                     self.by_others.append(frame)
-                    if on_done is not None:
-                        on_done(frame)
                     continue
                 claim = self.paths.claim(self.stage, frame)
                 if not claim.exists() or claim_is_dead(claim):

@@ -68,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--chunk", type=_positive, default=4, metavar="N",
                    help="frames per surface/render task (default: 4)")
     e.add_argument("-o", "--output", metavar="FILE",
-                   help="where to write it (default: <shot folder>/farm/<name>.<slurm.sh|cue.xml|openjd.yaml>)")
+                   help="where to write it (default: <shot folder>/farm/<name>.<slurm.sh|cue.xml|openjd.json>)")
 
     s = sub.add_parser("status", help="per stage: frames valid, missing, stale, and where")
     common(s)
@@ -156,7 +156,6 @@ def cmd_export(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=os.environ.get("SPHSHOT_LOG", "INFO"), format="sphshot: %(message)s",
                         stream=sys.stderr)
-    logging.getLogger("distributed").setLevel(max(logging.WARNING, logging.getLogger().level))
     os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
     parser = build_parser()
     try:

@@ -95,12 +95,8 @@ def frame_task(stage: str, spec, frames, paths, since, after: "TaskResult | None
     try:
         run_here(stage, spec, frames, paths, collect, since)
     except SphshotError as exc:
-        return TaskResult(stage, tuple(frames), _published(collect), error=str(exc))
-    return TaskResult(stage, tuple(frames), _published(collect))
-
-
-def _published(collect: Collect):
-    return tuple((f, tuple(files)) for f, files in collect.frames)
+        return TaskResult(stage, tuple(frames), tuple(collect.frames), error=str(exc))
+    return TaskResult(stage, tuple(frames), tuple(collect.frames))
 
 
 class DaskExecutor:

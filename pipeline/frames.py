@@ -55,12 +55,15 @@ def chunk_from(first: int, size: int, frames, what: str) -> list[int]:
     return [f for f in frames if f >= first][:size]
 
 
-def _env_int(env, name: str, minimum: int) -> int:
+def _env_int(env, name: str, minimum: int | None = None, default: int | None = None) -> int:
+    """An integer environment variable; `default` when it is unset or empty."""
+    if not env.get(name) and default is not None:
+        return default
     try:
         value = int(env[name])
     except ValueError:
         raise UsageError(f"{name}: expected an integer, got {env[name]!r}") from None
-    if value < minimum:
+    if minimum is not None and value < minimum:
         raise UsageError(f"{name}: expected an integer >= {minimum}, got {value}")
     return value
 
@@ -76,14 +79,14 @@ def frames_from_env(env, shot: range, chunk: int | None) -> tuple[list[int], str
     Returns the frames and a line saying where they came from.
     """
     if "CUE_IFRAME" in env:
-        first = _env_int(env, "CUE_IFRAME", -10**9)
-        size = chunk or (_env_int(env, "CUE_CHUNK", 1) if env.get("CUE_CHUNK") else 1)
+        first = _env_int(env, "CUE_IFRAME")
+        size = chunk or _env_int(env, "CUE_CHUNK", minimum=1, default=1)
         layer = parse_frames(env["CUE_RANGE"], shot, "CUE_RANGE") if env.get("CUE_RANGE") else list(shot)
         frames = chunk_from(first, size, layer, "CUE_IFRAME")
         return frames, f"CUE_IFRAME={first} (chunk {size})"
     if "SLURM_ARRAY_TASK_ID" in env:
-        first = _env_int(env, "SLURM_ARRAY_TASK_ID", -10**9)
-        size = chunk or (_env_int(env, "SPHSHOT_CHUNK", 1) if env.get("SPHSHOT_CHUNK") else 1)
+        first = _env_int(env, "SLURM_ARRAY_TASK_ID")
+        size = chunk or _env_int(env, "SPHSHOT_CHUNK", minimum=1, default=1)
         frames = chunk_from(first, size, shot, "SLURM_ARRAY_TASK_ID")
         return frames, f"SLURM_ARRAY_TASK_ID={first} (chunk {size})"
     return None

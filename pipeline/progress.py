@@ -107,7 +107,7 @@ class Collect:
     """A stage progress that records frames (on a Dask worker; the client reports them)."""
 
     def __init__(self):
-        self.frames: list[tuple[int, list[str]]] = []
+        self.frames: list[tuple[int, tuple[str, ...]]] = []
 
     def frame_done(self, frame: int, files=()) -> None:
-        self.frames.append((frame, [str(f) for f in files]))
+        self.frames.append((frame, tuple(str(f) for f in files)))
