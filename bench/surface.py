@@ -12,7 +12,9 @@ no density, so it uses the lattice volume (2r)^3 — the density pass is the sim
 splashsurf computes its own densities (included in its time). splashsurf runs in its own venv
 (its wheel wants NumPy 2; pyopenvdb needs NumPy 1) as a child process; sphshot also runs in a
 child, so both peak memories are per process. Timings are medians of --repeat runs after a
-warm-up; VDB writing is timed separately.
+warm-up. sphshot runs twice: "mesh" makes what splashsurf makes (the mesh, no velocities; the
+comparison); "full" makes what the surface stage makes (velocity field and vertex
+velocities too), then times the VDB grids separately.
 
     .venv/bin/python bench/surface.py --sizes 50k          # ~1 min
     .venv/bin/python bench/surface.py --sizes 50k,500k     # ~5 min
@@ -50,7 +52,7 @@ def particles(size: str, out: Path) -> Path:
     return path
 
 
-def child_sphshot(path: str, repeat: int, vdb_dir: str) -> None:
+def child_sphshot(path: str, repeat: int, vdb_dir: str, mode: str) -> None:
     import numpy as np
 
     from solver.backend import init_taichi
@@ -59,29 +61,37 @@ def child_sphshot(path: str, repeat: int, vdb_dir: str) -> None:
     from surfacing.reconstruct import colour_field, marching_cubes
 
     P = np.load(path).astype(np.float32)
-    vel = np.zeros_like(P)
+    vel = np.random.default_rng(1).normal(size=P.shape).astype(np.float32)
     vol = np.full(len(P), (2 * R) ** 3, np.float32)
     colour_field(P[:2000], vel[:2000], vol[:2000], CUBE * R, SUPPORT * R)      # compile, warm up
-    times = []
-    for _ in range(repeat):
+    colour_field(P[:2000], None, vol[:2000], CUBE * R, SUPPORT * R)
+
+    def timed(v):
+        times = []
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            field = colour_field(P, v, vol, CUBE * R, SUPPORT * R)
+            t1 = time.perf_counter()
+            mesh = marching_cubes(field, ISO)
+            t2 = time.perf_counter()
+            times.append((t2 - t0, t1 - t0, t2 - t1))
+        return sorted(times)[len(times) // 2], field, mesh
+
+    # "mesh": the mesh alone, what splashsurf makes. "full": what the surface stage makes, with
+    # the velocity field, vertex velocities and the VDB grids (timed separately)
+    (total, splat, mc), field, mesh = timed(vel if mode == "full" else None)
+    t_vdb = None
+    if mode == "full":
         t0 = time.perf_counter()
-        field = colour_field(P, vel, vol, CUBE * R, SUPPORT * R)
-        t1 = time.perf_counter()
-        mesh = marching_cubes(field, ISO)
-        t2 = time.perf_counter()
-        times.append((t2 - t0, t1 - t0, t2 - t1))
-    t0 = time.perf_counter()
-    grids = vdb.build_grids(field, mesh, 1, 0.0, 3.0)
-    vdb.write(Path(vdb_dir) / "bench.vdb", grids)
-    t_vdb = time.perf_counter() - t0
-    total, splat, mc = sorted(times)[len(times) // 2]
+        vdb.write(Path(vdb_dir) / "bench.vdb", vdb.build_grids(field, mesh, 1, 0.0, 3.0))
+        t_vdb = round(time.perf_counter() - t0, 3)
     f = np.asarray(mesh.faces)
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     _, cnt = np.unique(e[:, 0].astype(np.int64) * (len(mesh.points) + 1) + e[:, 1], return_counts=True)
     print("RESULT " + json.dumps({
-        "method": "sphshot", "particles": len(P), "mesh_s": round(total, 3), "splat_s": round(splat, 3),
-        "marching_cubes_s": round(mc, 3), "vdb_s": round(t_vdb, 3), "tris": len(f),
-        "grid_nodes": int(np.prod(field.colour.shape)), "closed": bool((cnt == 2).all())}), flush=True)
+        "method": f"sphshot-{mode}", "particles": len(P), "mesh_s": round(total, 3), "splat_s": round(splat, 3),
+        "marching_cubes_s": round(mc, 3), "vdb_s": t_vdb,
+        "tris": len(f), "grid_nodes": field.n_blocks * 512, "closed": bool((cnt == 2).all())}), flush=True)
 
 
 SPLASH_CHILD = r"""
@@ -126,10 +136,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", default="50k,500k")
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        return child_sphshot(args.child[0], int(args.child[1]), args.child[2])
+        return child_sphshot(args.child[0], int(args.child[1]), args.child[2], args.child[3])
     load = os.getloadavg()[0]
     print(f"# {os.cpu_count()} cores, 1-min load {load:.2f}{'  (busy machine: numbers are noisy)' if load > 0.5 else ''}")
     print(f"# command: {' '.join([Path(sys.executable).name, *sys.argv])}")
@@ -137,14 +147,15 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="sphshot_surface_bench_"))
     for size in args.sizes.split(","):
         path = particles(size, work)
-        ours = run_child([sys.executable, __file__, "--child", str(path), str(args.repeat), str(work)])
+        ours = run_child([sys.executable, __file__, "--child", str(path), str(args.repeat), str(work), "mesh"])
+        full = run_child([sys.executable, __file__, "--child", str(path), str(args.repeat), str(work), "full"])
         ref = run_child([str(splash_py), "-c", SPLASH_CHILD, str(path), str(args.repeat)])
-        for r in (ours, ref):
-            print(f"{size:5s} {r['method']:11s} " + " ".join(f"{k}={v}" for k, v in r.items() if k != "method"))
+        for r in (ours, full, ref):
+            print(f"{size:5s} {r['method']:14s} " + " ".join(f"{k}={v}" for k, v in r.items() if k != "method"))
         print(f"RATIO {size}: sphshot mesh time x{ours['mesh_s'] / ref['mesh_s']:.2f} of splashsurf's "
               f"(>1 is slower), peak memory x{ours['peak_rss_mb'] / ref['peak_rss_mb']:.2f}, "
-              f"triangles x{ours['tris'] / ref['tris']:.2f}; VDB writing {ours['vdb_s']} s on top")
-
+              f"triangles x{ours['tris'] / ref['tris']:.2f}; with velocities {full['mesh_s']} s "
+              f"(x{full['mesh_s'] / ref['mesh_s']:.2f}), then VDB writing {full['vdb_s']} s")
 
 if __name__ == "__main__":
     main()

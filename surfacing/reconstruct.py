@@ -13,18 +13,54 @@ from dataclasses import dataclass
 import numpy as np
 
 log = logging.getLogger("sphshot")
+B = 8                   # nodes per block edge of the sparse grid: one OpenVDB leaf node
 
 
 @dataclass
 class Field:
-    colour: np.ndarray        # (nx, ny, nz) float32
-    velocity: np.ndarray      # (nx, ny, nz, 3) float32
-    index0: np.ndarray        # (3,) int, index of node (0,0,0)
+    """The colour (and velocity) field on a block-sparse grid (see surfacing/splat.py).
+
+    Block n holds nodes blocks[n] * 8 + (0..7)^3 of the global grid, node (i, j, k) at world
+    position cell * (i, j, k). colour and velocity carry one more, all-zero block at the end,
+    the stand-in for blocks that were not allocated (no particle reaches them)."""
+    colour: np.ndarray                # (nb + 1, 8, 8, 8) float32
+    velocity: np.ndarray | None       # (nb + 1, 8, 8, 8, 3) float32, m/s
+    blocks: np.ndarray                # (nb, 3) int64 block coordinates
+    lookup: np.ndarray                # int32 block ids over the blocks' bounding box, -1 = none
+    base_block: np.ndarray            # (3,) block coordinates of lookup[0, 0, 0]
     cell: float
 
     @property
-    def origin(self) -> np.ndarray:
-        return self.index0 * self.cell
+    def n_blocks(self) -> int:
+        return len(self.blocks)
+
+    def neighbour(self, offset) -> np.ndarray:
+        """Id of each block's neighbour at block offset (dx, dy, dz); nb (the zero block) if none."""
+        at = self.blocks - self.base_block + np.asarray(offset)
+        inside = ((at >= 0) & (at < self.lookup.shape)).all(1)
+        ids = np.full(self.n_blocks, self.n_blocks, np.int64)
+        a = at[inside]
+        found = self.lookup[a[:, 0], a[:, 1], a[:, 2]]
+        ids[inside] = np.where(found >= 0, found, self.n_blocks)
+        return ids
+
+    def node_values(self, nodes: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """`values` (colour or velocity) at integer global node indices (N, 3); 0 where unallocated."""
+        b = nodes // B - self.base_block
+        inside = ((b >= 0) & (b < self.lookup.shape)).all(1)
+        ids = np.full(len(nodes), self.n_blocks, np.int64)
+        ids[inside] = self.lookup[b[inside, 0], b[inside, 1], b[inside, 2]]
+        ids[ids < 0] = self.n_blocks
+        loc = nodes % B
+        return values[ids, loc[:, 0], loc[:, 1], loc[:, 2]]
+
+    def dense(self):
+        """(array, index0): the field as one dense array over the blocks' bounding box (tests)."""
+        lo, hi = self.blocks.min(0), self.blocks.max(0) + 1
+        out = np.zeros(tuple((hi - lo) * B), np.float32)
+        for n, b in enumerate(self.blocks - lo):
+            out[b[0] * B:(b[0] + 1) * B, b[1] * B:(b[1] + 1) * B, b[2] * B:(b[2] + 1) * B] = self.colour[n]
+        return out, lo * B
 
 
 @dataclass
@@ -54,30 +90,94 @@ def particle_volumes(data: dict, attrs: dict) -> np.ndarray:
 
 
 def colour_field(positions, velocities, volumes, cell: float, support: float) -> Field:
-    """Splat onto the nodes covering the particles' bounds plus one support (and a spare node)."""
+    """Splat the particles onto the blocks their supports reach (cubic spline kernel).
+    `velocities` may be None: then the field carries no velocity (and the mesh none either)."""
     from .splat import splat     # Taichi: imported here so that reading meshes (render) stays light
 
-    margin = support + 2 * cell
-    lo = np.floor((positions.min(0) - margin) / cell).astype(int)
-    hi = np.ceil((positions.max(0) + margin) / cell).astype(int)
-    shape = tuple(int(v) for v in hi - lo + 1)
-    c, u = splat(positions, velocities, volumes, lo * cell, shape, cell, support)   # cubic spline
-    return Field(c, u, lo, cell)
+    c, u, blocks, lookup, base_block = splat(positions, velocities, volumes, cell, support)
+    return Field(c, u, blocks, lookup, base_block, cell)
+
+
+# the 7 blocks (besides the block itself) whose nodes the cells of a block touch
+_UPPER = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1), (1, 1, 1)]
 
 
 def marching_cubes(field: Field, iso: float) -> Mesh:
-    from scipy.ndimage import map_coordinates
+    """Marching cubes (scikit-image's Lewiner) over the blocks whose cells cross `iso`.
+
+    Each such block is cut out with its upper neighbours' first node layers (9^3 nodes, its 8^3
+    cells); these tiles are laid out side by side in one array, with the cells that would join
+    two tiles masked off, and triangulated in one call. The vertices that neighbouring
+    blocks share on their common faces are then welded by the grid edge they lie on."""
     from skimage.measure import marching_cubes as mc
 
-    if field.colour.max() <= iso:
+    nb = field.n_blocks
+    if nb == 0:
         return Mesh.empty()
-    # the field is zero on its border (margin > support), so every surface is closed
-    verts, faces, _normals, _ = mc(field.colour, level=iso, allow_degenerate=False)
-    points = (verts + field.index0) * field.cell
+    flat = field.colour[:nb].reshape(nb, -1)
+    above = np.r_[flat.max(1) > iso, False]          # the zero block: all below
+    below = np.r_[flat.min(1) <= iso, True]
+    nbrs = np.stack([field.neighbour(o) for o in _UPPER])          # (7, nb)
+    crosses = (above[:nb] | above[nbrs].any(0)) & (below[:nb] | below[nbrs].any(0))
+    todo = np.flatnonzero(crosses)
+    if len(todo) == 0:
+        return Mesh.empty()
+
+    # tile the blocks into one array about as deep as it is wide, so that float32 vertex
+    # coordinates keep their precision (a 10^5-node-long stack would round them to 1/100 cell)
+    t = int(np.ceil(len(todo) ** (1 / 3)))
+    tiles = np.zeros((t * t * t, B + 1, B + 1, B + 1), np.float32)   # spare tiles: all outside
+    ext = tiles[:len(todo)]
+    C = field.colour
+    ext[:, :B, :B, :B] = C[todo]
+    n = nbrs[:, todo]
+    ext[:, B, :B, :B] = C[n[0], 0]
+    ext[:, :B, B, :B] = C[n[1], :, 0]
+    ext[:, :B, :B, B] = C[n[2], :, :, 0]
+    ext[:, B, B, :B] = C[n[3], 0, 0]
+    ext[:, B, :B, B] = C[n[4], 0, :, 0]
+    ext[:, :B, B, B] = C[n[5], :, 0, 0]
+    ext[:, B, B, B] = C[n[6], 0, 0, 0]
+    volume = tiles.reshape(t, t, t, B + 1, B + 1, B + 1).transpose(0, 3, 1, 4, 2, 5).reshape((t * (B + 1),) * 3)
+    del tiles
+    # no cells between two tiles. scikit-image tests a cell's mask at its far corner (checked
+    # by tests/test_surfacing.py against marching cubes on the dense array)
+    mask = np.ones(volume.shape, bool)
+    mask[::B + 1] = mask[:, ::B + 1] = mask[:, :, ::B + 1] = False
+    verts, faces, _n, _v = mc(volume, level=iso, mask=mask, allow_degenerate=True)
+    del volume, mask
+
+    # back to global node coordinates
+    tile = np.floor(verts / (B + 1)).astype(np.int64)
+    which = (tile[:, 0] * t + tile[:, 1]) * t + tile[:, 2]
+    g = verts.astype(np.float64) - tile * (B + 1)
+    g += field.blocks[todo[which]] * B
+    # weld: one vertex per grid edge (node below it along the axis it lies on, and that axis)
+    base = np.floor(g).astype(np.int64)
+    axis = np.argmax(g - base, axis=1)
+    lo = base.min(0)
+    span = base.max(0) - lo + 1
+    b = base - lo
+    key = ((b[:, 0] * span[1] + b[:, 1]) * span[2] + b[:, 2]) * 3 + axis
+    _u, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    g = g[first]
+    faces = inverse.reshape(-1)[faces]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
     faces = faces[:, ::-1].astype(np.int32)     # skimage winds inward for "inside = above iso"
+
+    points = g * field.cell
     normals = vertex_normals(points, faces)
-    vel = np.stack([map_coordinates(field.velocity[..., a], verts.T, order=1, mode="nearest")
-                    for a in range(3)], axis=1)
+    if field.velocity is None:
+        vel = np.zeros_like(points)
+    else:
+        # each vertex lies on a grid edge: linear interpolation between the edge's two nodes
+        a = np.floor(g).astype(np.int64)
+        along = np.argmax(g - a, axis=1)
+        rows = np.arange(len(g))
+        t = (g - a)[rows, along][:, None]
+        step = np.zeros_like(a)
+        step[rows, along] = 1
+        vel = (1 - t) * field.node_values(a, field.velocity) + t * field.node_values(a + step, field.velocity)
     return Mesh(points.astype(np.float32), faces, normals, vel.astype(np.float32))
 
 
@@ -86,8 +186,9 @@ def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     p = points.astype(np.float64)
     fn = np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]])
     vn = np.zeros_like(p)
-    for k in range(3):
-        np.add.at(vn, faces[:, k], fn)
+    idx = faces.reshape(-1)
+    for a in range(3):
+        vn[:, a] = np.bincount(idx, weights=np.repeat(fn[:, a], 3), minlength=len(p))
     norm = np.linalg.norm(vn, axis=1, keepdims=True)
     return (vn / np.maximum(norm, 1e-30)).astype(np.float32)
 

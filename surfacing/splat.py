@@ -1,20 +1,42 @@
-"""Colour-field splatting in Taichi: particles -> grid nodes near them.
+"""Colour-field splatting in Taichi: particles -> the nodes of a block-sparse grid near them.
 
 c(x) = sum_j V_j W(x - x_j) with V_j = m_j / rho_j (the particle's volume, from the sim cache),
-and the velocity field u(x) = sum_j V_j v_j W(x - x_j) / c(x). Only grid nodes within the
-kernel support of some particle are touched (each particle visits its own neighbourhood), so the
-work is proportional to particles x nodes-per-support, not to the grid's volume.
+and the velocity field u(x) = sum_j V_j v_j W(x - x_j) / c(x).
+
+Storage: blocks of 8^3 nodes (one OpenVDB leaf each), allocated only where some particle's
+support reaches, plus one node of padding (so that every grid cell with a non-zero corner has
+all eight corners in allocated blocks, which marching cubes relies on). Node (i, j, k) sits at
+world position cell * (i, j, k); block n holds the nodes blocks[n] * 8 + (0..7)^3.
+
+Scatter without atomics: particles are binned into cubes of edge 2h and the cubes are split
+into 8 phases by the parity of their coordinates. Two cubes of one phase are at least 2h apart,
+so their particles' supports never share a node: every phase runs in parallel over its cubes,
+each cube's particles one after another, with plain (non-atomic) adds. The sum is therefore the
+same on every run and with any number of threads (the order of adds is fixed).
 """
+import math
+
 import numpy as np
 import taichi as ti
 
 from solver import kernels as K
 
+from .reconstruct import B
+
+B3 = B * B * B
+MAX_LOOKUP = 1 << 28           # block-index entries (1 GiB of int32); beyond this, refuse
+
 vec3 = ti.math.vec3
 V3 = ti.types.ndarray(dtype=vec3, ndim=1)
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
-G3 = ti.types.ndarray(dtype=ti.f32, ndim=3)
-G3V = ti.types.ndarray(dtype=vec3, ndim=3)
+I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
+BLK = ti.types.ndarray(dtype=ti.f32, ndim=2)
+BLKV = ti.types.ndarray(dtype=vec3, ndim=2)
+
+
+class GridTooLarge(ValueError):
+    pass
 
 
 @ti.func
@@ -24,56 +46,131 @@ def _span(g: ti.f32, reach: ti.f32, n: ti.i32):
 
 
 @ti.kernel
-def k_splat(pos: V3, vel: V3, vol: F1, origin: vec3, cell: ti.f32, h: ti.f32,
-            colour: G3, momentum: G3V, kern: ti.template()):
-    """Each particle adds into the nodes inside its support sphere. The loops run over the
-    sphere, row by row (the k range of each (i, j) column from the remaining radius), not over
-    its bounding cube, which would be 3.5x the iterations for nothing."""
-    nx, ny, nz = colour.shape
+def k_mark(pos: V3, origin: vec3, cell: ti.f32, h: ti.f32, used: I3):
+    """used[block] = 1 for every block within one node of some particle's support cube."""
+    nbx, nby, nbz = used.shape
     for p in pos:
-        x = pos[p]
-        g = (x - origin) / cell                     # the particle in node units
-        i0, i1 = _span(g.x, h / cell, nx)
-        for i in range(i0, i1 + 1):
-            dx = origin.x + cell * i - x.x
-            rem_x = h * h - dx * dx
-            if rem_x > 0.0:
-                j0, j1 = _span(g.y, ti.sqrt(rem_x) / cell, ny)
-                for j in range(j0, j1 + 1):
-                    dy = origin.y + cell * j - x.y
-                    rem = rem_x - dy * dy
-                    if rem > 0.0:
-                        k0, k1 = _span(g.z, ti.sqrt(rem) / cell, nz)
-                        for k in range(k0, k1 + 1):
-                            dz = origin.z + cell * k - x.z
-                            r2 = dx * dx + dy * dy + dz * dz
-                            if r2 < h * h:              # round-off at the sphere's rim
-                                wgt = vol[p] * K.w(kern, ti.sqrt(r2), h)
-                                ti.atomic_add(colour[i, j, k], wgt)
-                                ti.atomic_add(momentum[i, j, k], wgt * vel[p])
+        g = (pos[p] - origin) / cell
+        lo_x, hi_x = _span(g.x, h / cell + 1.0, nbx * B)
+        lo_y, hi_y = _span(g.y, h / cell + 1.0, nby * B)
+        lo_z, hi_z = _span(g.z, h / cell + 1.0, nbz * B)
+        for bi, bj, bk in ti.ndrange((lo_x // B, hi_x // B + 1), (lo_y // B, hi_y // B + 1),
+                                     (lo_z // B, hi_z // B + 1)):
+            used[bi, bj, bk] = 1
 
 
-def splat(positions: np.ndarray, velocities: np.ndarray, volumes: np.ndarray, origin: np.ndarray,
-          shape: tuple[int, int, int], cell: float, support: float, kernel: int = K.CUBIC):
-    """Return (colour, velocity) node arrays of `shape`, node (i,j,k) at origin + cell*(i,j,k)."""
-    n = len(positions)
-    # particles in grid order, so that consecutive particles add into the same cache lines
-    key = np.floor((positions - origin) / support).astype(np.int64)
-    order = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
-    positions, velocities, volumes = positions[order], velocities[order], volumes[order]
-    pos = ti.Vector.ndarray(3, ti.f32, shape=n)
-    vel = ti.Vector.ndarray(3, ti.f32, shape=n)
-    vol = ti.ndarray(ti.f32, shape=n)
-    pos.from_numpy(positions.astype(np.float32))
-    vel.from_numpy(velocities.astype(np.float32))
-    vol.from_numpy(volumes.astype(np.float32))
-    colour = ti.ndarray(ti.f32, shape=shape)
-    momentum = ti.Vector.ndarray(3, ti.f32, shape=shape)
+@ti.kernel
+def k_splat(pos: V3, vel: V3, vol: F1, first: I1, last: I1, origin: vec3, cell: ti.f32, h: ti.f32,
+            lookup: I3, colour: BLK, momentum: BLKV, kern: ti.template(), with_velocity: ti.template()):
+    """Each particle adds into the nodes inside its support sphere, row by row (the k range of
+    each (i, j) column from the remaining radius), not over its bounding cube (3.5x the work).
+    The outer loop runs over one phase's cubes in parallel; see the module docstring."""
+    nx, ny, nz = lookup.shape[0] * B, lookup.shape[1] * B, lookup.shape[2] * B
+    for c in first:
+        for p in range(first[c], last[c]):
+            x = pos[p]
+            g = (x - origin) / cell                     # the particle in node units
+            i0, i1 = _span(g.x, h / cell, nx)
+            for i in range(i0, i1 + 1):
+                dx = origin.x + cell * i - x.x
+                rem_x = h * h - dx * dx
+                if rem_x > 0.0:
+                    j0, j1 = _span(g.y, ti.sqrt(rem_x) / cell, ny)
+                    for j in range(j0, j1 + 1):
+                        dy = origin.y + cell * j - x.y
+                        rem = rem_x - dy * dy
+                        if rem > 0.0:
+                            k0, k1 = _span(g.z, ti.sqrt(rem) / cell, nz)
+                            row = (i % B * B + j % B) * B
+                            for kb in range(k0 // B, k1 // B + 1):     # the row's blocks
+                                b = lookup[i // B, j // B, kb]
+                                for k in range(ti.max(k0, kb * B), ti.min(k1, kb * B + B - 1) + 1):
+                                    dz = origin.z + cell * k - x.z
+                                    r2 = dx * dx + dy * dy + dz * dz
+                                    if r2 < h * h:              # round-off at the sphere's rim
+                                        wgt = vol[p] * K.w(kern, ti.sqrt(r2), h)
+                                        n = row + k - kb * B
+                                        colour[b, n] = colour[b, n] + wgt       # no race: see above
+                                        if ti.static(with_velocity):
+                                            momentum[b, n] = momentum[b, n] + wgt * vel[p]
+
+
+def allocate(positions: np.ndarray, cell: float, support: float):
+    """The blocks the particles' supports reach: (lookup, base_block, blocks, origin).
+
+    lookup: int32 array over the blocks' bounding box, block id or -1; base_block: the block
+    coordinates of lookup[0, 0, 0]; blocks: (nb, 3) block coordinates in lookup order (x, y, z
+    lexicographic); origin: world position of node base_block * 8."""
+    reach = support / cell + 2.0                    # the support, the padding node, round-off
+    lo = np.floor(positions.min(0).astype(np.float64) / cell - reach).astype(np.int64)
+    hi = np.ceil(positions.max(0).astype(np.float64) / cell + reach).astype(np.int64)
+    base_block = lo // B
+    shape = tuple(int(v) for v in hi // B - base_block + 1)
+    if math.prod(shape) > MAX_LOOKUP:
+        raise GridTooLarge(f"the particles span {shape} blocks of {B}^3 cells; increase "
+                           f"surface.cell_size or remove stray particles")
+    origin = (base_block * B * cell).astype(np.float32)
+    used = ti.ndarray(ti.i32, shape=shape)
+    used.fill(0)
+    k_mark(_vec3_ndarray(positions), vec3(*map(float, origin)), float(cell), float(support), used)
+    used = used.to_numpy().astype(bool)
+    lookup = np.full(shape, -1, np.int32)
+    lookup[used] = np.arange(int(used.sum()), dtype=np.int32)
+    blocks = np.argwhere(used) + base_block
+    return lookup, base_block, blocks, origin
+
+
+def splat(positions: np.ndarray, velocities: np.ndarray | None, volumes: np.ndarray,
+          cell: float, support: float, kernel: int = K.CUBIC):
+    """Return (colour, velocity | None, blocks, lookup, base_block) with colour (nb + 1, 8, 8, 8)
+    and velocity (nb + 1, 8, 8, 8, 3): the last block is an all-zero stand-in for missing ones."""
+    lookup, base_block, blocks, origin = allocate(positions, cell, support)
+    nb = len(blocks)
+    # particles into cubes of edge 2h, ordered by phase, cube, then the block each lies in
+    g = (positions.astype(np.float64) - origin) / cell
+    cube = np.floor(g * cell / (2 * support)).astype(np.int64)
+    cdims = cube.max(0) + 1
+    phase = (cube[:, 0] & 1) * 4 + (cube[:, 1] & 1) * 2 + (cube[:, 2] & 1)
+    cube_id = (cube[:, 0] * cdims[1] + cube[:, 1]) * cdims[2] + cube[:, 2]
+    blk = np.floor(g / B).astype(np.int64)
+    blk_id = (blk[:, 0] * lookup.shape[1] + blk[:, 1]) * lookup.shape[2] + blk[:, 2]
+    order = np.lexsort((blk_id, cube_id, phase))
+    cube_id, phase = cube_id[order], phase[order]
+    starts = np.flatnonzero(np.r_[True, cube_id[1:] != cube_id[:-1]])
+    ends = np.r_[starts[1:], len(order)]
+
+    with_velocity = velocities is not None
+    pos = _vec3_ndarray(positions[order])
+    vel = _vec3_ndarray(velocities[order]) if with_velocity else ti.Vector.ndarray(3, ti.f32, shape=1)
+    vol = ti.ndarray(ti.f32, shape=len(order))
+    vol.from_numpy(np.ascontiguousarray(volumes[order], np.float32))
+    look = ti.ndarray(ti.i32, shape=lookup.shape)
+    look.from_numpy(lookup)
+    colour = ti.ndarray(ti.f32, shape=(nb + 1, B3))
     colour.fill(0.0)
+    momentum = ti.Vector.ndarray(3, ti.f32, shape=(nb + 1 if with_velocity else 1, B3))
     momentum.fill(0.0)
-    k_splat(pos, vel, vol, vec3(*map(float, origin)), float(cell), float(support), colour, momentum, kernel)
-    c = colour.to_numpy()
-    u = momentum.to_numpy()
-    with np.errstate(invalid="ignore", divide="ignore"):
-        u = np.where(c[..., None] > 1e-6, u / c[..., None], 0.0).astype(np.float32)
-    return c, u
+    for ph in range(8):
+        sel = phase[starts] == ph
+        if sel.any():
+            first = ti.ndarray(ti.i32, shape=int(sel.sum()))
+            last = ti.ndarray(ti.i32, shape=int(sel.sum()))
+            first.from_numpy(starts[sel].astype(np.int32))
+            last.from_numpy(ends[sel].astype(np.int32))
+            k_splat(pos, vel, vol, first, last, vec3(*map(float, origin)), float(cell), float(support),
+                    look, colour, momentum, kernel, with_velocity)
+    c = colour.to_numpy().reshape(nb + 1, B, B, B)
+    u = None
+    if with_velocity:
+        u = momentum.to_numpy().reshape(nb + 1, B, B, B, 3)
+        for n in range(0, nb + 1, 4096):              # in place, in chunks: no float64 temporaries
+            cs = c[n:n + 4096, ..., None]
+            np.divide(u[n:n + 4096], cs, out=u[n:n + 4096], where=cs > 1e-6)
+            u[n:n + 4096][np.broadcast_to(cs <= 1e-6, u[n:n + 4096].shape)] = 0.0
+    return c, u, blocks, lookup, base_block
+
+
+def _vec3_ndarray(a: np.ndarray):
+    out = ti.Vector.ndarray(3, ti.f32, shape=len(a))
+    out.from_numpy(np.ascontiguousarray(a, np.float32))
+    return out

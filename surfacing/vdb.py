@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pyopenvdb as vdb
 
+from .reconstruct import B
+
 FOG_TOLERANCE = 1e-4     # colour values below this are background (inactive)
 
 
@@ -26,10 +28,15 @@ def build_grids(field, mesh, frame: int, time_s: float, half_width: float, extra
     velocity.name = "velocity"
     velocity.vectorType = vdb.VectorType.CONTRAVARIANT_RELATIVE
     if field is not None:
-        ijk = tuple(int(v) for v in field.index0)
-        density.copyFromArray(np.ascontiguousarray(field.colour, np.float32), ijk=ijk, tolerance=FOG_TOLERANCE)
-        vel = np.where((field.colour > FOG_TOLERANCE)[..., None], field.velocity, 0.0)
-        velocity.copyFromArray(np.ascontiguousarray(vel, np.float32), ijk=ijk, tolerance=(0.0, 0.0, 0.0))
+        # one copy per 8^3 block: each is exactly one leaf node of the grid
+        with_velocity = field.velocity is not None
+        for n, b in enumerate(field.blocks):
+            ijk = tuple(int(v) * B for v in b)
+            c = field.colour[n]
+            density.copyFromArray(c, ijk=ijk, tolerance=FOG_TOLERANCE)
+            if with_velocity:
+                vel = np.where((c > FOG_TOLERANCE)[..., None], field.velocity[n], np.float32(0.0))
+                velocity.copyFromArray(vel, ijk=ijk, tolerance=(0.0, 0.0, 0.0))
     for g in (density, velocity):
         g.transform = xform
     grids += [density, velocity]

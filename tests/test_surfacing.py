@@ -68,6 +68,76 @@ def test_vertex_velocity_is_interpolated_from_particles(sphere_mesh):
                                atol=1e-4, err_msg="a uniform particle velocity must reach every vertex")
 
 
+def _clump_and_stray(seed=3):
+    """A jittered clump of particles and one droplet far away (a dense box over both would be
+    mostly empty)."""
+    rng = np.random.default_rng(seed)
+    d = 2 * R_PART
+    ax = np.arange(0, 8) * d
+    p = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    p = p + rng.uniform(-0.3, 0.3, p.shape) * d + CENTRE
+    p = np.vstack([p, CENTRE + [1.0, 0.3, -0.15]]).astype(np.float32)
+    vel = rng.normal(size=p.shape).astype(np.float32)
+    return p, vel, np.full(len(p), d ** 3, np.float32)
+
+
+def test_sparse_field_is_the_sph_sum_at_every_node():
+    """Every node of the blocks' bounding box equals the brute-force sum over all particles
+    (nodes of blocks that were not allocated must be zero), and only the blocks near particles
+    are allocated."""
+    from solver.kernels import CUBIC, w_np
+    from surfacing.reconstruct import colour_field
+
+    pos, vel, vol = _clump_and_stray()
+    field = colour_field(pos, vel, vol, CELL, SUPPORT)
+    dense, index0 = field.dense()
+    expect = np.zeros(dense.shape)             # numpy scatter, in float64, over each support cube
+    reach = int(np.ceil(SUPPORT / CELL))
+    for p, v in zip(pos.astype(np.float64), vol):
+        lo = np.floor(p / CELL).astype(int) - reach
+        ax = [np.arange(lo[a], lo[a] + 2 * reach + 2) for a in range(3)]
+        node = np.stack(np.meshgrid(*ax, indexing="ij"), -1)
+        wgt = v * w_np(CUBIC, np.linalg.norm(node * CELL - p, axis=-1), SUPPORT)
+        at = lo - index0
+        assert (at >= 0).all() and (at + 2 * reach + 2 <= dense.shape).all(), "support outside the blocks"
+        expect[at[0]:at[0] + 2 * reach + 2, at[1]:at[1] + 2 * reach + 2, at[2]:at[2] + 2 * reach + 2] += wgt
+    # float32 sums of ~50 terms of size <= 0.32: round-off well under 1e-5
+    np.testing.assert_allclose(dense, expect, atol=2e-5)
+    box_blocks = np.prod(field.blocks.max(0) - field.blocks.min(0) + 1)
+    assert field.n_blocks < box_blocks / 20, f"{field.n_blocks} blocks of a {box_blocks}-block box"
+    again = colour_field(pos, vel, vol, CELL, SUPPORT)
+    assert np.array_equal(again.colour, field.colour), "the scatter must not depend on thread timing"
+
+
+@pytest.mark.parametrize("iso", [0.3, 0.5])
+def test_block_marching_cubes_equals_marching_cubes_on_the_dense_grid(sphere_mesh, iso):
+    """Triangulating block by block and welding gives the mesh of one call on the dense array."""
+    from skimage.measure import marching_cubes as mc
+
+    from surfacing.reconstruct import colour_field, marching_cubes
+
+    for field in (sphere_mesh[0], colour_field(*_clump_and_stray(), CELL, SUPPORT)):
+        dense, index0 = field.dense()
+        verts, faces, _n, _v = mc(np.pad(dense, 1), level=iso, allow_degenerate=True)
+        ref = np.round((verts - 1 + index0) * CELL, 6)
+        mesh = marching_cubes(field, iso)
+        got = np.round(mesh.points.astype(np.float64), 6)
+        assert len(mesh.faces) == len(faces) and len(got) == len(ref)
+        np.testing.assert_allclose(np.sort(got, axis=0), np.sort(ref, axis=0), atol=2e-6)
+
+
+def test_field_without_velocity():
+    from surfacing import vdb
+    from surfacing.reconstruct import colour_field, marching_cubes
+
+    pos, _vel, vol, _ = ball(radius=0.03)
+    field = colour_field(pos, None, vol, CELL, SUPPORT)
+    mesh = marching_cubes(field, 0.5)
+    assert field.velocity is None and len(mesh.faces) > 0 and not mesh.velocity.any()
+    grids = {g.name: g for g in vdb.build_grids(field, mesh, 1, 0.0, 3.0)}
+    assert grids["velocity"].activeVoxelCount() == 0 and grids["density"].activeVoxelCount() > 0
+
+
 def _trilinear(acc, xform, points):
     """Sample a FloatGrid at world points (index-space trilinear interpolation)."""
     out = np.empty(len(points))
