@@ -70,7 +70,7 @@ def child_sphshot(path: str, repeat: int, vdb_dir: str, mode: str) -> None:
         times = []
         for _ in range(repeat):
             t0 = time.perf_counter()
-            field = colour_field(P, v, vol, CUBE * R, SUPPORT * R)
+            field = colour_field(P, v, vol, CUBE * R, SUPPORT * R, ISO)
             t1 = time.perf_counter()
             mesh = marching_cubes(field, ISO)
             t2 = time.perf_counter()

@@ -18,21 +18,30 @@ B = 8                   # nodes per block edge of the sparse grid: one OpenVDB l
 
 @dataclass
 class Field:
-    """The colour (and velocity) field on a block-sparse grid (see surfacing/splat.py).
+    """The colour and velocity fields on a block-sparse grid (see surfacing/splat.py).
 
     Block n holds nodes blocks[n] * 8 + (0..7)^3 of the global grid, node (i, j, k) at world
-    position cell * (i, j, k). colour and velocity carry one more, all-zero block at the end,
-    the stand-in for blocks that were not allocated (no particle reaches them)."""
+    position cell * (i, j, k). `colour` covers every block; `velocity` only the blocks
+    velocity_ids (the band the iso surface passes through). Both arrays end with one all-zero
+    block, the stand-in for blocks that are missing (or outside the band)."""
     colour: np.ndarray                # (nb + 1, 8, 8, 8) float32
-    velocity: np.ndarray | None       # (nb + 1, 8, 8, 8, 3) float32, m/s
     blocks: np.ndarray                # (nb, 3) int64 block coordinates
     lookup: np.ndarray                # int32 block ids over the blocks' bounding box, -1 = none
     base_block: np.ndarray            # (3,) block coordinates of lookup[0, 0, 0]
     cell: float
+    velocity: np.ndarray | None = None        # (len(velocity_ids) + 1, 8, 8, 8, 3) float32, m/s
+    velocity_ids: np.ndarray | None = None    # the block ids that carry velocity
 
     @property
     def n_blocks(self) -> int:
         return len(self.blocks)
+
+    @property
+    def velocity_slot(self) -> np.ndarray:
+        """(nb + 1,): where each block's velocity is in `velocity` (the zero block if nowhere)."""
+        slot = np.full(self.n_blocks + 1, len(self.velocity_ids), np.int64)
+        slot[self.velocity_ids] = np.arange(len(self.velocity_ids))
+        return slot
 
     def neighbour(self, offset) -> np.ndarray:
         """Id of each block's neighbour at block offset (dx, dy, dz); nb (the zero block) if none."""
@@ -44,23 +53,39 @@ class Field:
         ids[inside] = np.where(found >= 0, found, self.n_blocks)
         return ids
 
-    def node_values(self, nodes: np.ndarray, values: np.ndarray) -> np.ndarray:
-        """`values` (colour or velocity) at integer global node indices (N, 3); 0 where unallocated."""
+    def block_of(self, nodes: np.ndarray) -> np.ndarray:
+        """Block id of integer global node indices (N, 3); nb (the zero block) where missing."""
         b = nodes // B - self.base_block
         inside = ((b >= 0) & (b < self.lookup.shape)).all(1)
         ids = np.full(len(nodes), self.n_blocks, np.int64)
         ids[inside] = self.lookup[b[inside, 0], b[inside, 1], b[inside, 2]]
         ids[ids < 0] = self.n_blocks
-        loc = nodes % B
-        return values[ids, loc[:, 0], loc[:, 1], loc[:, 2]]
+        return ids
+
+    def crossing_blocks(self, iso: float) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, upper): the blocks owning a grid cell with corners on both sides of `iso`, and
+        the (7, len(ids)) ids of their upper neighbours, whose first node layers those cells
+        reach (nb where missing)."""
+        nb = self.n_blocks
+        flat = self.colour[:nb].reshape(nb, -1)
+        above = np.r_[flat.max(1) > iso, False]          # the zero block: all below
+        below = np.r_[flat.min(1) <= iso, True]
+        nbrs = np.stack([self.neighbour(o) for o in _UPPER])
+        crosses = (above[:nb] | above[nbrs].any(0)) & (below[:nb] | below[nbrs].any(0))
+        ids = np.flatnonzero(crosses)
+        return ids, nbrs[:, ids]
 
     def dense(self):
-        """(array, index0): the field as one dense array over the blocks' bounding box (tests)."""
+        """(array, index0): the colour as one dense array over the blocks' bounding box (tests)."""
         lo, hi = self.blocks.min(0), self.blocks.max(0) + 1
         out = np.zeros(tuple((hi - lo) * B), np.float32)
         for n, b in enumerate(self.blocks - lo):
             out[b[0] * B:(b[0] + 1) * B, b[1] * B:(b[1] + 1) * B, b[2] * B:(b[2] + 1) * B] = self.colour[n]
         return out, lo * B
+
+
+# the 7 blocks (besides the block itself) whose nodes the cells of a block touch
+_UPPER = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1), (1, 1, 1)]
 
 
 @dataclass
@@ -89,17 +114,20 @@ def particle_volumes(data: dict, attrs: dict) -> np.ndarray:
     return vol.astype(np.float32)
 
 
-def colour_field(positions, velocities, volumes, cell: float, support: float) -> Field:
-    """Splat the particles onto the blocks their supports reach (cubic spline kernel).
-    `velocities` may be None: then the field carries no velocity (and the mesh none either)."""
-    from .splat import splat     # Taichi: imported here so that reading meshes (render) stays light
+def colour_field(positions, velocities, volumes, cell: float, support: float, iso: float = 0.5) -> Field:
+    """Splat the particles onto the blocks their supports reach (cubic spline kernel). With
+    `velocities`, the velocity field too, on the blocks the `iso` surface crosses and their upper
+    neighbours (what the mesh's vertices and a motion-blur band need), from only the particles
+    that reach them."""
+    from .splat import Splat     # Taichi: imported here so that reading meshes (render) stays light
 
-    c, u, blocks, lookup, base_block = splat(positions, velocities, volumes, cell, support)
-    return Field(c, u, blocks, lookup, base_block, cell)
-
-
-# the 7 blocks (besides the block itself) whose nodes the cells of a block touch
-_UPPER = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1), (1, 1, 1)]
+    sp = Splat(positions, volumes, cell, support)
+    field = Field(sp.colour(), sp.blocks, sp.lookup, sp.base_block, cell)
+    if velocities is not None and field.n_blocks:
+        ids, upper = field.crossing_blocks(iso)
+        band = np.union1d(ids, upper[upper < field.n_blocks])
+        field.velocity, field.velocity_ids = sp.velocity(velocities, band, field.colour), band
+    return field
 
 
 def marching_cubes(field: Field, iso: float) -> Mesh:
@@ -111,15 +139,9 @@ def marching_cubes(field: Field, iso: float) -> Mesh:
     blocks share on their common faces are then welded by the grid edge they lie on."""
     from skimage.measure import marching_cubes as mc
 
-    nb = field.n_blocks
-    if nb == 0:
+    if field.n_blocks == 0:
         return Mesh.empty()
-    flat = field.colour[:nb].reshape(nb, -1)
-    above = np.r_[flat.max(1) > iso, False]          # the zero block: all below
-    below = np.r_[flat.min(1) <= iso, True]
-    nbrs = np.stack([field.neighbour(o) for o in _UPPER])          # (7, nb)
-    crosses = (above[:nb] | above[nbrs].any(0)) & (below[:nb] | below[nbrs].any(0))
-    todo = np.flatnonzero(crosses)
+    todo, n = field.crossing_blocks(iso)
     if len(todo) == 0:
         return Mesh.empty()
 
@@ -130,7 +152,6 @@ def marching_cubes(field: Field, iso: float) -> Mesh:
     ext = tiles[:len(todo)]
     C = field.colour
     ext[:, :B, :B, :B] = C[todo]
-    n = nbrs[:, todo]
     ext[:, B, :B, :B] = C[n[0], 0]
     ext[:, :B, B, :B] = C[n[1], :, 0]
     ext[:, :B, :B, B] = C[n[2], :, :, 0]
@@ -177,8 +198,14 @@ def marching_cubes(field: Field, iso: float) -> Mesh:
         t = (g - a)[rows, along][:, None]
         step = np.zeros_like(a)
         step[rows, along] = 1
-        vel = (1 - t) * field.node_values(a, field.velocity) + t * field.node_values(a + step, field.velocity)
+        vel = (1 - t) * _node_velocity(field, a) + t * _node_velocity(field, a + step)
     return Mesh(points.astype(np.float32), faces, normals, vel.astype(np.float32))
+
+
+def _node_velocity(field: Field, nodes: np.ndarray) -> np.ndarray:
+    slot = field.velocity_slot[field.block_of(nodes)]
+    loc = nodes % B
+    return field.velocity[slot, loc[:, 0], loc[:, 1], loc[:, 2]]
 
 
 def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -61,11 +61,13 @@ def k_mark(pos: V3, origin: vec3, cell: ti.f32, h: ti.f32, used: I3):
 
 @ti.kernel
 def k_splat(pos: V3, vel: V3, vol: F1, first: I1, last: I1, origin: vec3, cell: ti.f32, h: ti.f32,
-            lookup: I3, colour: BLK, momentum: BLKV, kern: ti.template(), with_velocity: ti.template()):
+            target: I3, colour: BLK, momentum: BLKV, kern: ti.template(), velocity_pass: ti.template()):
     """Each particle adds into the nodes inside its support sphere, row by row (the k range of
     each (i, j) column from the remaining radius), not over its bounding cube (3.5x the work).
-    The outer loop runs over one phase's cubes in parallel; see the module docstring."""
-    nx, ny, nz = lookup.shape[0] * B, lookup.shape[1] * B, lookup.shape[2] * B
+    target[block] is the slot each block's nodes go to, -1 to skip the block. The colour pass
+    adds V_j W into `colour`, the velocity pass V_j W v_j into `momentum`. The outer loop runs
+    over one phase's cubes in parallel; see the module docstring."""
+    nx, ny, nz = target.shape[0] * B, target.shape[1] * B, target.shape[2] * B
     for c in first:
         for p in range(first[c], last[c]):
             x = pos[p]
@@ -83,16 +85,35 @@ def k_splat(pos: V3, vel: V3, vol: F1, first: I1, last: I1, origin: vec3, cell: 
                             k0, k1 = _span(g.z, ti.sqrt(rem) / cell, nz)
                             row = (i % B * B + j % B) * B
                             for kb in range(k0 // B, k1 // B + 1):     # the row's blocks
-                                b = lookup[i // B, j // B, kb]
-                                for k in range(ti.max(k0, kb * B), ti.min(k1, kb * B + B - 1) + 1):
-                                    dz = origin.z + cell * k - x.z
-                                    r2 = dx * dx + dy * dy + dz * dz
-                                    if r2 < h * h:              # round-off at the sphere's rim
-                                        wgt = vol[p] * K.w(kern, ti.sqrt(r2), h)
-                                        n = row + k - kb * B
-                                        colour[b, n] = colour[b, n] + wgt       # no race: see above
-                                        if ti.static(with_velocity):
-                                            momentum[b, n] = momentum[b, n] + wgt * vel[p]
+                                b = target[i // B, j // B, kb]
+                                if b >= 0:
+                                    for k in range(ti.max(k0, kb * B), ti.min(k1, kb * B + B - 1) + 1):
+                                        dz = origin.z + cell * k - x.z
+                                        r2 = dx * dx + dy * dy + dz * dz
+                                        if r2 < h * h:              # round-off at the sphere's rim
+                                            wgt = vol[p] * K.w(kern, ti.sqrt(r2), h)
+                                            n = row + k - kb * B
+                                            if ti.static(velocity_pass):    # no races: see above
+                                                momentum[b, n] = momentum[b, n] + wgt * vel[p]
+                                            else:
+                                                colour[b, n] = colour[b, n] + wgt
+
+
+@ti.kernel
+def k_touches(pos: V3, origin: vec3, cell: ti.f32, h: ti.f32, target: I3, touches: I1):
+    """touches[p] = 1 where particle p's support cube reaches a block with target >= 0."""
+    nbx, nby, nbz = target.shape
+    for p in pos:
+        g = (pos[p] - origin) / cell
+        lo_x, hi_x = _span(g.x, h / cell, nbx * B)
+        lo_y, hi_y = _span(g.y, h / cell, nby * B)
+        lo_z, hi_z = _span(g.z, h / cell, nbz * B)
+        hit = 0
+        for bi, bj, bk in ti.ndrange((lo_x // B, hi_x // B + 1), (lo_y // B, hi_y // B + 1),
+                                     (lo_z // B, hi_z // B + 1)):
+            if target[bi, bj, bk] >= 0:
+                hit = 1
+        touches[p] = hit
 
 
 def allocate(positions: np.ndarray, cell: float, support: float):
@@ -120,54 +141,77 @@ def allocate(positions: np.ndarray, cell: float, support: float):
     return lookup, base_block, blocks, origin
 
 
-def splat(positions: np.ndarray, velocities: np.ndarray | None, volumes: np.ndarray,
-          cell: float, support: float, kernel: int = K.CUBIC):
-    """Return (colour, velocity | None, blocks, lookup, base_block) with colour (nb + 1, 8, 8, 8)
-    and velocity (nb + 1, 8, 8, 8, 3): the last block is an all-zero stand-in for missing ones."""
-    lookup, base_block, blocks, origin = allocate(positions, cell, support)
-    nb = len(blocks)
-    # particles into cubes of edge 2h, ordered by phase, cube, then the block each lies in
-    g = (positions.astype(np.float64) - origin) / cell
-    cube = np.floor(g * cell / (2 * support)).astype(np.int64)
-    cdims = cube.max(0) + 1
-    phase = (cube[:, 0] & 1) * 4 + (cube[:, 1] & 1) * 2 + (cube[:, 2] & 1)
-    cube_id = (cube[:, 0] * cdims[1] + cube[:, 1]) * cdims[2] + cube[:, 2]
-    blk = np.floor(g / B).astype(np.int64)
-    blk_id = (blk[:, 0] * lookup.shape[1] + blk[:, 1]) * lookup.shape[2] + blk[:, 2]
-    order = np.lexsort((blk_id, cube_id, phase))
-    cube_id, phase = cube_id[order], phase[order]
-    starts = np.flatnonzero(np.r_[True, cube_id[1:] != cube_id[:-1]])
-    ends = np.r_[starts[1:], len(order)]
+class Splat:
+    """Particles sorted for the phased scatter onto the blocks their supports reach.
 
-    with_velocity = velocities is not None
-    pos = _vec3_ndarray(positions[order])
-    vel = _vec3_ndarray(velocities[order]) if with_velocity else ti.Vector.ndarray(3, ti.f32, shape=1)
-    vol = ti.ndarray(ti.f32, shape=len(order))
-    vol.from_numpy(np.ascontiguousarray(volumes[order], np.float32))
-    look = ti.ndarray(ti.i32, shape=lookup.shape)
-    look.from_numpy(lookup)
-    colour = ti.ndarray(ti.f32, shape=(nb + 1, B3))
-    colour.fill(0.0)
-    momentum = ti.Vector.ndarray(3, ti.f32, shape=(nb + 1 if with_velocity else 1, B3))
-    momentum.fill(0.0)
-    for ph in range(8):
-        sel = phase[starts] == ph
-        if sel.any():
-            first = ti.ndarray(ti.i32, shape=int(sel.sum()))
-            last = ti.ndarray(ti.i32, shape=int(sel.sum()))
-            first.from_numpy(starts[sel].astype(np.int32))
-            last.from_numpy(ends[sel].astype(np.int32))
-            k_splat(pos, vel, vol, first, last, vec3(*map(float, origin)), float(cell), float(support),
-                    look, colour, momentum, kernel, with_velocity)
-    c = colour.to_numpy().reshape(nb + 1, B, B, B)
-    u = None
-    if with_velocity:
-        u = momentum.to_numpy().reshape(nb + 1, B, B, B, 3)
-        for n in range(0, nb + 1, 4096):              # in place, in chunks: no float64 temporaries
-            cs = c[n:n + 4096, ..., None]
-            np.divide(u[n:n + 4096], cs, out=u[n:n + 4096], where=cs > 1e-6)
-            u[n:n + 4096][np.broadcast_to(cs <= 1e-6, u[n:n + 4096].shape)] = 0.0
-    return c, u, blocks, lookup, base_block
+    colour() is the colour field on every block; velocity(v, ids, colour) the velocity field
+    on the blocks `ids` only, from the particles that reach them."""
+
+    def __init__(self, positions: np.ndarray, volumes: np.ndarray, cell: float, support: float,
+                 kernel: int = K.CUBIC):
+        self.lookup, self.base_block, self.blocks, self.origin = allocate(positions, cell, support)
+        self.cell, self.support, self.kernel = float(cell), float(support), kernel
+        # particles into cubes of edge 2h, ordered by phase, cube, then the block each lies in
+        g = (positions.astype(np.float64) - self.origin) / cell
+        cube = np.floor(g * cell / (2 * support)).astype(np.int64)
+        cdims = cube.max(0) + 1
+        phase = (cube[:, 0] & 1) * 4 + (cube[:, 1] & 1) * 2 + (cube[:, 2] & 1)
+        cube_id = (cube[:, 0] * cdims[1] + cube[:, 1]) * cdims[2] + cube[:, 2]
+        blk = np.floor(g / B).astype(np.int64)
+        blk_id = (blk[:, 0] * self.lookup.shape[1] + blk[:, 1]) * self.lookup.shape[2] + blk[:, 2]
+        self.order = np.lexsort((blk_id, cube_id, phase))
+        self.cube_id, self.phase = cube_id[self.order], phase[self.order]
+        self.pos = _vec3_ndarray(positions[self.order])
+        self.vol = ti.ndarray(ti.f32, shape=len(self.order))
+        self.vol.from_numpy(np.ascontiguousarray(volumes[self.order], np.float32))
+
+    @property
+    def n_blocks(self) -> int:
+        return len(self.blocks)
+
+    def colour(self) -> np.ndarray:
+        """(nb + 1, 8, 8, 8) float32; the last block stays zero (the stand-in for missing ones)."""
+        colour = np.zeros((self.n_blocks + 1, B3), np.float32)
+        self._scatter(np.ones(len(self.order), bool), self.pos, self.lookup, colour, None)
+        return colour.reshape(-1, B, B, B)
+
+    def velocity(self, velocities: np.ndarray, ids: np.ndarray, colour: np.ndarray) -> np.ndarray:
+        """(len(ids) + 1, 8, 8, 8, 3) float32 on the blocks `ids` (zero where colour <= 1e-6)."""
+        slot = np.full(self.n_blocks + 1, -1, np.int32)
+        slot[ids] = np.arange(len(ids), dtype=np.int32)
+        target = np.where(self.lookup >= 0, slot[self.lookup], -1).astype(np.int32)
+        touches = np.zeros(len(self.order), np.int32)
+        k_touches(self.pos, vec3(*map(float, self.origin)), self.cell, self.support, target, touches)
+        momentum = np.zeros((len(ids) + 1, B3, 3), np.float32)
+        vel = _vec3_ndarray(velocities[self.order])
+        self._scatter(touches.astype(bool), vel, target, None, momentum)
+        u = momentum.reshape(-1, B, B, B, 3)
+        c = np.concatenate([colour[ids], np.zeros((1, B, B, B), np.float32)])[..., None]
+        np.divide(u, c, out=u, where=c > 1e-6)
+        u[np.broadcast_to(c <= 1e-6, u.shape)] = 0.0
+        return u
+
+    def _scatter(self, use: np.ndarray, vel, target: np.ndarray, colour, momentum) -> None:
+        """Add the particles `use` (in sorted order) into colour, or into momentum if given."""
+        velocity_pass = momentum is not None
+        dummy2, dummy3 = np.zeros((1, 1), np.float32), np.zeros((1, 1, 3), np.float32)
+        idx = np.flatnonzero(use)
+        if len(idx) == 0:
+            return
+        # each cube's taking part particles as one index range into the sorted arrays (particles
+        # in between that reach no target block add nothing)
+        cube_id, phase = self.cube_id[idx], self.phase[idx]
+        starts = np.flatnonzero(np.r_[True, cube_id[1:] != cube_id[:-1]])
+        ends = np.r_[starts[1:], len(idx)]
+        first_all, last_all = idx[starts], idx[ends - 1] + 1
+        for ph in range(8):
+            sel = phase[starts] == ph
+            if not sel.any():
+                continue
+            k_splat(self.pos, vel, self.vol, first_all[sel].astype(np.int32), last_all[sel].astype(np.int32),
+                    vec3(*map(float, self.origin)), self.cell, self.support, target,
+                    dummy2 if velocity_pass else colour, momentum if velocity_pass else dummy3,
+                    self.kernel, velocity_pass)
 
 
 def _vec3_ndarray(a: np.ndarray):

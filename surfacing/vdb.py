@@ -1,7 +1,8 @@
 """OpenVDB output with Debian's pyopenvdb (OpenVDB 10, NumPy 1.x).
 
 Grids: `surface` (level set, narrow band of `half_width` voxels, built from the mesh so the two
-agree), `density` (fog, the colour field) and `velocity` (Vec3). All share one linear transform
+agree), `density` (fog, the colour field wherever particles reach) and `velocity` (Vec3, on the
+band of 8^3 blocks the surface passes through, where the colour exceeds FOG_TOLERANCE). All share one linear transform
 of voxel size `cell`; index (i, j, k) is at world cell * (i, j, k). Metadata: frame, time.
 """
 from __future__ import annotations
@@ -29,14 +30,12 @@ def build_grids(field, mesh, frame: int, time_s: float, half_width: float, extra
     velocity.vectorType = vdb.VectorType.CONTRAVARIANT_RELATIVE
     if field is not None:
         # one copy per 8^3 block: each is exactly one leaf node of the grid
-        with_velocity = field.velocity is not None
         for n, b in enumerate(field.blocks):
-            ijk = tuple(int(v) * B for v in b)
-            c = field.colour[n]
-            density.copyFromArray(c, ijk=ijk, tolerance=FOG_TOLERANCE)
-            if with_velocity:
-                vel = np.where((c > FOG_TOLERANCE)[..., None], field.velocity[n], np.float32(0.0))
-                velocity.copyFromArray(vel, ijk=ijk, tolerance=(0.0, 0.0, 0.0))
+            density.copyFromArray(field.colour[n], ijk=tuple(int(v) * B for v in b), tolerance=FOG_TOLERANCE)
+        if field.velocity is not None:
+            for slot, n in enumerate(field.velocity_ids):
+                vel = np.where((field.colour[n] > FOG_TOLERANCE)[..., None], field.velocity[slot], np.float32(0))
+                velocity.copyFromArray(vel, ijk=tuple(int(v) * B for v in field.blocks[n]), tolerance=(0.0, 0.0, 0.0))
     for g in (density, velocity):
         g.transform = xform
     grids += [density, velocity]

@@ -126,6 +126,21 @@ def test_block_marching_cubes_equals_marching_cubes_on_the_dense_grid(sphere_mes
         np.testing.assert_allclose(np.sort(got, axis=0), np.sort(ref, axis=0), atol=2e-6)
 
 
+def test_velocity_band_is_the_full_velocity_field_there():
+    """Velocities are splatted only into the band of blocks the surface crosses, from only the
+    particles that reach it; there they equal the velocity field computed from all particles
+    on all blocks."""
+    from surfacing.reconstruct import colour_field
+    from surfacing.splat import Splat
+
+    pos, vel, vol = _clump_and_stray()
+    field = colour_field(pos, vel, vol, CELL, SUPPORT, iso=0.5)
+    assert 0 < len(field.velocity_ids) < field.n_blocks
+    full = Splat(pos, vol, CELL, SUPPORT).velocity(vel, np.arange(field.n_blocks), field.colour)
+    np.testing.assert_allclose(field.velocity[:-1], full[field.velocity_ids], rtol=1e-5, atol=1e-6)
+    assert np.abs(full[field.velocity_ids]).max() > 0.1
+
+
 def test_field_without_velocity():
     from surfacing import vdb
     from surfacing.reconstruct import colour_field, marching_cubes
