@@ -16,6 +16,10 @@ log = logging.getLogger("sphshot")
 B = 8                   # nodes per block edge of the sparse grid: one OpenVDB leaf node
 
 
+class GridTooLarge(ValueError):
+    """The particles are spread too far for the block index at this cell size."""
+
+
 @dataclass
 class Field:
     """The colour and velocity fields on a block-sparse grid (see surfacing/splat.py).

@@ -21,7 +21,7 @@ import taichi as ti
 
 from solver import kernels as K
 
-from .reconstruct import B
+from .reconstruct import B, GridTooLarge
 
 B3 = B * B * B
 MAX_LOOKUP = 1 << 28           # block-index entries (1 GiB of int32); beyond this, refuse
@@ -33,10 +33,6 @@ I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
 BLK = ti.types.ndarray(dtype=ti.f32, ndim=2)
 BLKV = ti.types.ndarray(dtype=vec3, ndim=2)
-
-
-class GridTooLarge(ValueError):
-    pass
 
 
 @ti.func

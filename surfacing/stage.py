@@ -41,7 +41,7 @@ def run(spec, frames, paths, progress) -> None:
     from solver.backend import BackendUnavailable, init_taichi
 
     from . import vdb
-    from .reconstruct import write_mesh
+    from .reconstruct import GridTooLarge, write_mesh
 
     try:
         init_taichi(spec.sim.backend, spec.sim.threads)
@@ -53,7 +53,10 @@ def run(spec, frames, paths, progress) -> None:
             data, attrs = read_frame(src)
         except OSError as exc:
             raise StageError(f"frame {frame:04d}: surfacing: cannot read {src}: {exc}") from None
-        field, mesh, per_fluid = surface_frame(spec, data, attrs, frame)
+        try:
+            field, mesh, per_fluid = surface_frame(spec, data, attrs, frame)
+        except GridTooLarge as exc:
+            raise StageError(f"frame {frame:04d}: surfacing: {exc}") from None
         written = []
         grids = vdb.build_grids(field, mesh, frame, float(attrs.get("time", spec.frame_time(frame))),
                                 spec.surface.half_width, extra_surfaces=per_fluid.items())

@@ -141,6 +141,14 @@ def test_velocity_band_is_the_full_velocity_field_there():
     assert np.abs(full[field.velocity_ids]).max() > 0.1
 
 
+def test_particles_spread_too_far_is_one_clear_error():
+    from surfacing.reconstruct import GridTooLarge, colour_field
+
+    pos = np.array([[0.0, 0.0, 0.0], [400.0, 400.0, 400.0]], np.float32)
+    with pytest.raises(GridTooLarge, match="surface.cell_size"):
+        colour_field(pos, None, np.full(2, 1e-6, np.float32), CELL, SUPPORT)
+
+
 def test_field_without_velocity():
     from surfacing import vdb
     from surfacing.reconstruct import colour_field, marching_cubes
