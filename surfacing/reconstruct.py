@@ -49,13 +49,7 @@ class Field:
 
     def neighbour(self, offset) -> np.ndarray:
         """Id of each block's neighbour at block offset (dx, dy, dz); nb (the zero block) if none."""
-        at = self.blocks - self.base_block + np.asarray(offset)
-        inside = ((at >= 0) & (at < self.lookup.shape)).all(1)
-        ids = np.full(self.n_blocks, self.n_blocks, np.int64)
-        a = at[inside]
-        found = self.lookup[a[:, 0], a[:, 1], a[:, 2]]
-        ids[inside] = np.where(found >= 0, found, self.n_blocks)
-        return ids
+        return self.block_of((self.blocks + np.asarray(offset)) * B)
 
     def block_of(self, nodes: np.ndarray) -> np.ndarray:
         """Block id of integer global node indices (N, 3); nb (the zero block) where missing."""

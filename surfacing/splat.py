@@ -41,17 +41,22 @@ def _span(g: ti.f32, reach: ti.f32, n: ti.i32):
     return ti.max(ti.cast(ti.ceil(g - reach), ti.i32), 0), ti.min(ti.cast(ti.floor(g + reach), ti.i32), n - 1)
 
 
+@ti.func
+def _blocks_within(g, reach: ti.f32, shape):
+    """The block index ranges ((x0, x1), (y0, y1), (z0, z1)), ends exclusive, of the nodes
+    within `reach` (node units, per axis) of `g`, for a block array of `shape`."""
+    lo_x, hi_x = _span(g.x, reach, shape[0] * B)
+    lo_y, hi_y = _span(g.y, reach, shape[1] * B)
+    lo_z, hi_z = _span(g.z, reach, shape[2] * B)
+    return (lo_x // B, hi_x // B + 1), (lo_y // B, hi_y // B + 1), (lo_z // B, hi_z // B + 1)
+
+
 @ti.kernel
 def k_mark(pos: V3, origin: vec3, cell: ti.f32, h: ti.f32, used: I3):
     """used[block] = 1 for every block within one node of some particle's support cube."""
-    nbx, nby, nbz = used.shape
     for p in pos:
-        g = (pos[p] - origin) / cell
-        lo_x, hi_x = _span(g.x, h / cell + 1.0, nbx * B)
-        lo_y, hi_y = _span(g.y, h / cell + 1.0, nby * B)
-        lo_z, hi_z = _span(g.z, h / cell + 1.0, nbz * B)
-        for bi, bj, bk in ti.ndrange((lo_x // B, hi_x // B + 1), (lo_y // B, hi_y // B + 1),
-                                     (lo_z // B, hi_z // B + 1)):
+        rx, ry, rz = _blocks_within((pos[p] - origin) / cell, h / cell + 1.0, used.shape)
+        for bi, bj, bk in ti.ndrange(rx, ry, rz):
             used[bi, bj, bk] = 1
 
 
@@ -98,15 +103,10 @@ def k_splat(pos: V3, vel: V3, vol: F1, first: I1, last: I1, origin: vec3, cell: 
 @ti.kernel
 def k_touches(pos: V3, origin: vec3, cell: ti.f32, h: ti.f32, target: I3, touches: I1):
     """touches[p] = 1 where particle p's support cube reaches a block with target >= 0."""
-    nbx, nby, nbz = target.shape
     for p in pos:
-        g = (pos[p] - origin) / cell
-        lo_x, hi_x = _span(g.x, h / cell, nbx * B)
-        lo_y, hi_y = _span(g.y, h / cell, nby * B)
-        lo_z, hi_z = _span(g.z, h / cell, nbz * B)
+        rx, ry, rz = _blocks_within((pos[p] - origin) / cell, h / cell, target.shape)
         hit = 0
-        for bi, bj, bk in ti.ndrange((lo_x // B, hi_x // B + 1), (lo_y // B, hi_y // B + 1),
-                                     (lo_z // B, hi_z // B + 1)):
+        for bi, bj, bk in ti.ndrange(rx, ry, rz):
             if target[bi, bj, bk] >= 0:
                 hit = 1
         touches[p] = hit
