@@ -179,7 +179,7 @@ def marching_cubes(field: Field, iso: float) -> Mesh:
     b = base - lo
     key = ((b[:, 0] * span[1] + b[:, 1]) * span[2] + b[:, 2]) * 3 + axis
     _u, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    g = g[first]
+    g, base, axis = g[first], base[first], axis[first]
     faces = inverse.reshape(-1)[faces]
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
     faces = faces[:, ::-1].astype(np.int32)     # skimage winds inward for "inside = above iso"
@@ -190,13 +190,11 @@ def marching_cubes(field: Field, iso: float) -> Mesh:
         vel = np.zeros_like(points)
     else:
         # each vertex lies on a grid edge: linear interpolation between the edge's two nodes
-        a = np.floor(g).astype(np.int64)
-        along = np.argmax(g - a, axis=1)
         rows = np.arange(len(g))
-        t = (g - a)[rows, along][:, None]
-        step = np.zeros_like(a)
-        step[rows, along] = 1
-        vel = (1 - t) * _node_velocity(field, a) + t * _node_velocity(field, a + step)
+        frac = (g - base)[rows, axis][:, None]
+        step = np.zeros_like(base)
+        step[rows, axis] = 1
+        vel = (1 - frac) * _node_velocity(field, base) + frac * _node_velocity(field, base + step)
     return Mesh(points.astype(np.float32), faces, normals, vel.astype(np.float32))
 
 
