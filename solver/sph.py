@@ -452,8 +452,12 @@ def k_forces(pos: V3, vel: V3, acc: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
             if sigma > 0.0 and nn * h > threshold:
                 a -= sigma * lap * n / nn / rho[i]
         acc[i] = a
-        ti.atomic_max(stats[0], vi.norm())
-        ti.atomic_max(stats[1], a.norm())
+        # read before the atomic: once the maxima are found, almost no particle contends for them
+        vn, an = vi.norm(), a.norm()
+        if vn > stats[0]:
+            ti.atomic_max(stats[0], vn)
+        if an > stats[1]:
+            ti.atomic_max(stats[1], an)
 
 
 @ti.kernel
