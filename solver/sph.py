@@ -6,6 +6,8 @@ One step, in the order of the paper:
   2. density       number density delta_i = sum_j W(x_ij) (+ wall integral), rho_i = m_i delta_i
                    (Solenthaler & Pajarola 2008: exact at interfaces of fluids of different rho0)
                    pressure p_i = B ((rho_i / rho0)^gamma - 1), clamped at 0, B = rho0 c^2 / gamma
+                   this pass tests every candidate of the grid cells around i and keeps the
+                   neighbours (r < h) in a per-particle list; the force pass reads only those
   3. forces        symmetric pressure  a_i -= 1/m_i sum_j (p_i/delta_i^2 + p_j/delta_j^2) grad W
                    (the pressure gradient is scaled by 1/M, M the kernel gradient's first moment on
                    the fill lattice, so that a linear pressure field is differentiated exactly)
@@ -352,14 +354,19 @@ def k_gather(order: I1, pos: V3, vel: V3, acc: V3, fluid: I1, pid: I1,
 
 
 @ti.kernel
-def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
+def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1, nbr: I1, nbn: I1, cap: ti.i32,
               start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3,
               h: ti.f32, ftab: F2, gamma: ti.f32, oct_t: F4, oct_g: F4, lattice: ti.f32,
-              dmin: vec3, dmax: vec3, ctype: I1, cprm: F2, dkern: ti.template()):
+              dmin: vec3, dmax: vec3, ctype: I1, cprm: F2, stats: F1, dkern: ti.template()):
+    """Density and pressure; also lists each particle's neighbours (0 < r < h, in grid order)
+    for the force pass, at nbr[i * cap ...]. A particle with more than `cap` neighbours
+    raises stats[2] to its count, and the step is redone with a larger list."""
     for i in pos:
         xi = pos[i]
         ci = cell_of(xi, origin, inv_cell, dims)
         s = 0.0
+        m = 0
+        base = i * cap
         for dz, dy in ti.ndrange((-CELL_DIV, CELL_DIV + 1), (-CELL_DIV, CELL_DIV + 1)):
             cy, cz = ci.y + dy, ci.z + dz
             if 0 <= cy < dims.y and 0 <= cz < dims.z:
@@ -369,7 +376,16 @@ def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
                 c0 = flat(ivec3(x0, cy, cz), dims)
                 c1 = flat(ivec3(x1, cy, cz), dims)
                 for j in range(start[c0], start[c1] + count[c1]):
-                    s += K.w_r2(dkern, (xi - pos[j]).norm_sqr(), h)
+                    r2 = (xi - pos[j]).norm_sqr()
+                    if r2 < h * h:
+                        s += K.w_r2(dkern, r2, h)
+                        if r2 > 1e-18:
+                            if m < cap:
+                                nbr[base + m] = j
+                            m += 1
+        nbn[i] = ti.min(m, cap)
+        if m > cap:
+            ti.atomic_max(stats[2], ti.cast(m, ti.f32))
         # walls: the domain's six planes and the colliders, as boundary samples on the fill
         # lattice. They take the particle's own compression, so the share f of the kernel they
         # cover scales the fluid's sum up: delta = sum_fluid / (1 - f). Exact at rest and
@@ -389,7 +405,7 @@ def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
 
 @ti.kernel
 def k_forces(pos: V3, vel: V3, acc: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
-             start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3,
+             nbr: I1, nbn: I1, cap: ti.i32,
              h: ti.f32, ftab: F2, gravity: vec3, oct_t: F4, oct_g: F4, mom: F2, lattice: ti.f32,
              grad_scale: ti.f32, threshold: ti.f32,
              dmin: vec3, dmax: vec3, ctype: I1, cprm: F2, stats: F1, pkern: ti.template(),
@@ -404,26 +420,18 @@ def k_forces(pos: V3, vel: V3, acc: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
         a_v = vec3(0.0)
         n = vec3(0.0)
         lap = K.lap_poly6(0.0, h) / di      # colour field includes the particle itself
-        ci = cell_of(xi, origin, inv_cell, dims)
-        for dz, dy in ti.ndrange((-CELL_DIV, CELL_DIV + 1), (-CELL_DIV, CELL_DIV + 1)):
-            cy, cz = ci.y + dy, ci.z + dz
-            if 0 <= cy < dims.y and 0 <= cz < dims.z:
-                x0 = ti.max(ci.x - CELL_DIV, 0)
-                x1 = ti.min(ci.x + CELL_DIV, dims.x - 1)
-                c0 = flat(ivec3(x0, cy, cz), dims)
-                c1 = flat(ivec3(x1, cy, cz), dims)
-                for j in range(start[c0], start[c1] + count[c1]):
-                    rv = xi - pos[j]
-                    r2 = rv.norm_sqr()
-                    if 1e-18 < r2 < h * h:
-                        r = ti.sqrt(r2)
-                        dj = delta[j]
-                        a_p -= (pi_ + prs[j] / (dj * dj)) * K.grad_w(pkern, rv, r, h)
-                        mu = 0.5 * (ftab[fi, F_MU] + ftab[fluid[j], F_MU])
-                        a_v += mu * (vel[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
-                        if ti.static(tension):
-                            n += K.grad_w(K.POLY6, rv, r, h) / dj
-                            lap += K.lap_poly6(r, h) / dj
+        base = i * cap
+        for m in range(nbn[i]):
+            j = nbr[base + m]
+            rv = xi - pos[j]
+            r = ti.sqrt(rv.norm_sqr())
+            dj = delta[j]
+            a_p -= (pi_ + prs[j] / (dj * dj)) * K.grad_w(pkern, rv, r, h)
+            mu = 0.5 * (ftab[fi, F_MU] + ftab[fluid[j], F_MU])
+            a_v += mu * (vel[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
+            if ti.static(tension):
+                n += K.grad_w(K.POLY6, rv, r, h) / dj
+                lap += K.lap_poly6(r, h) / dj
         a = (grad_scale * a_p + a_v) / mi + gravity
         # walls push with the particle's own pressure term only, p_i/delta_i^2 (Akinci et al.
         # 2012): boundary samples are fixed and carry no energy of their own, so this is the
@@ -570,7 +578,10 @@ class SPHSolver:
         self.start = ti.ndarray(ti.i32, self.n_cells)
         self.fill = ti.ndarray(ti.i32, self.n_cells)
         self.block_sum = ti.ndarray(ti.i32, (self.n_cells + SCAN_BLOCK - 1) // SCAN_BLOCK)
-        self.stats = ti.ndarray(ti.f32, 2)
+        self.stats = ti.ndarray(ti.f32, 3)    # max speed, max acceleration, list overflow
+        # neighbour lists: room for 1.5x the neighbours of the fill lattice, grown on overflow
+        self.nb_cap = 0
+        self._grow_neighbours(int(1.5 * 4.0 / 3.0 * math.pi * (h / cfg.spacing) ** 3) + 8)
 
         self.ftab = ti.ndarray(ti.f32, cfg.fluid_table.shape)
         self.ftab.from_numpy(cfg.fluid_table)
@@ -616,22 +627,38 @@ class SPHSolver:
         self.fluid, self.fluid_b = self.fluid_b, self.fluid
         self.pid, self.pid_b = self.pid_b, self.pid
 
+    def _grow_neighbours(self, cap: int) -> None:
+        cap = -(-cap // 8) * 8
+        if self.n * cap >= 2 ** 31:
+            raise MemoryError(f"neighbour lists of {self.n} particles x {cap} exceed 2^31 entries")
+        self.nb_cap = cap
+        self.nbr = ti.ndarray(ti.i32, max(self.n * cap, 1))
+        self.nbn = ti.ndarray(ti.i32, self.n)
+
     def density(self) -> None:
         cfg = self.cfg
-        k_density(self.pos, self.fluid, self.delta, self.rho, self.prs, self.start, self.count,
-                  self.origin, self.inv_cell, self.dims, self.h, self.ftab, cfg.gamma,
-                  self.oct_t, self.oct_g, cfg.lattice_density, self.dmin, self.dmax, self.ctype, self.cprm, cfg.density_kernel)
-
-    def forces(self) -> None:
-        cfg = self.cfg
         self.stats.fill(0.0)
+        k_density(self.pos, self.fluid, self.delta, self.rho, self.prs, self.nbr, self.nbn, self.nb_cap,
+                  self.start, self.count,
+                  self.origin, self.inv_cell, self.dims, self.h, self.ftab, cfg.gamma,
+                  self.oct_t, self.oct_g, cfg.lattice_density, self.dmin, self.dmax, self.ctype, self.cprm,
+                  self.stats, cfg.density_kernel)
+
+    def forces(self) -> bool:
+        """Accelerations and the step's maxima. False if a neighbour list overflowed: the
+        lists were grown, and density and forces must run again."""
+        cfg = self.cfg
         k_forces(self.pos, self.vel, self.acc, self.fluid, self.delta, self.rho, self.prs,
-                 self.start, self.count, self.origin, self.inv_cell, self.dims, self.h, self.ftab,
+                 self.nbr, self.nbn, self.nb_cap, self.h, self.ftab,
                  vec3(*cfg.gravity), self.oct_t, self.oct_g, self.mom, cfg.lattice_density, cfg.grad_scale,
                  cfg.surface_threshold, self.dmin, self.dmax,
                  self.ctype, self.cprm, self.stats, cfg.pressure_kernel, self.tension)
         s = self.stats.to_numpy()
         self.vmax, self.amax = float(s[0]), float(s[1])
+        if s[2] > self.nb_cap:
+            self._grow_neighbours(int(1.25 * s[2]) + 8)
+            return False
+        return True
 
     def stable_dt(self) -> float:
         """CFL (sound + flow speed), force and viscous limits, capped by max_dt."""
@@ -653,16 +680,21 @@ class SPHSolver:
     # ------------------------------------------------------------------------------- step
     def step(self, t_target: float | None = None, timed: bool = False) -> float:
         """One substep; never steps past t_target. Returns dt."""
-        phases = (("grid", self.build_grid), ("density", self.density), ("forces", self.forces))
-        for name, fn in phases:
-            if timed:
-                ti.sync()
-                t0 = time.perf_counter()
-                fn()
-                ti.sync()
-                self.timer.add(name, time.perf_counter() - t0)
-            else:
-                fn()
+        def phase(name, fn):
+            if not timed:
+                return fn()
+            ti.sync()
+            t0 = time.perf_counter()
+            out = fn()
+            ti.sync()
+            self.timer.add(name, time.perf_counter() - t0)
+            return out
+
+        phase("grid", self.build_grid)
+        while True:
+            phase("density", self.density)
+            if phase("forces", self.forces):
+                break           # else a neighbour list overflowed and was grown: again
         dt = self.stable_dt()
         if t_target is not None:
             remaining = t_target - self.time
