@@ -61,6 +61,18 @@ def w_r2(kind: ti.template(), r2: ti.f32, h: ti.f32) -> ti.f32:
 
 
 @ti.func
+def w_r2_free(kind: ti.template(), r2: ti.f32, h: ti.f32) -> ti.f32:
+    """w_r2 without a branch for poly6 (0 beyond h through the clamp), for candidate loops."""
+    out = 0.0
+    if ti.static(kind == POLY6):
+        d = ti.max(h * h - r2, 0.0)
+        out = 315.0 / (64.0 * PI * h ** 9) * d * d * d
+    else:
+        out = w_r2(kind, r2, h)
+    return out
+
+
+@ti.func
 def dw(kind: ti.template(), r: ti.f32, h: ti.f32) -> ti.f32:
     """Radial derivative dW/dr (<= 0); grad W = dW/dr * r_vec / r."""
     out = 0.0

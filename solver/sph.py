@@ -1,13 +1,15 @@
 """Weakly compressible SPH after Müller, Charypar & Gross 2003, with Tait's equation of state.
 
 One step, in the order of the paper:
-  1. build grid    particles counting-sorted by cell (cell size = support h), arrays permuted
-                   so that each cell's particles are contiguous in memory
+  1. neighbours    Verlet lists of the pairs within h + skin, rebuilt only once some particle has
+                   moved skin/2 since the last build (every few steps): the particles are then
+                   counting-sorted by cell (cell size (h + skin) / CELL_DIV) and the arrays
+                   permuted so that each cell's particles are contiguous in memory
   2. density       number density delta_i = sum_j W(x_ij) (+ wall integral), rho_i = m_i delta_i
                    (Solenthaler & Pajarola 2008: exact at interfaces of fluids of different rho0)
                    pressure p_i = B ((rho_i / rho0)^gamma - 1), clamped at 0, B = rho0 c^2 / gamma
-                   this pass tests every candidate of the grid cells around i and keeps the
-                   neighbours (r < h) in a per-particle list; the force pass reads only those
+                   this pass reads the Verlet list and keeps the pairs now within h in a second,
+                   exact list; the force pass reads only those
   3. forces        symmetric pressure  a_i -= 1/m_i sum_j (p_i/delta_i^2 + p_j/delta_j^2) grad W
                    (the pressure gradient is scaled by 1/M, M the kernel gradient's first moment on
                    the fill lattice, so that a linear pressure field is differentiated exactly)
@@ -48,10 +50,14 @@ F_MASS, F_RHO0, F_B, F_MU, F_SIGMA = range(5)
 # Collider table columns: 7 shape params, restitution, friction, sign (+1 obstacle, -1 container)
 C_REST, C_FRIC, C_SIGN = 7, 8, 9
 SCAN_BLOCK = 256
-# Cells are h / CELL_DIV wide; a particle's neighbours lie within CELL_DIV cells each way. With
+# Cells are (h + skin) / CELL_DIV wide; a particle's list neighbours lie within CELL_DIV cells each way. With
 # CELL_DIV = 2 the 5 x 5 x 5 cells searched cover 42% less volume than 3 x 3 x 3 cells of size h,
 # so fewer candidates are tested; each row of 5 cells along x is contiguous in memory.
 CELL_DIV = 2
+# Verlet-list skin, in units of h: lists hold pairs within h (1 + SKIN) and last until a particle
+# has moved SKIN h / 2 from where they were built. Measured on the 50k dam break (bench/solver.py,
+# 0.5 s): 0.15 rebuilds too often, 0.25 lists too many pairs; 0.2 was fastest.
+SKIN = 0.2
 
 
 # ===================================================================================== config
@@ -342,11 +348,12 @@ def k_scatter(cell: I1, start: I1, fill: I1, order: I1):
 
 
 @ti.kernel
-def k_gather(order: I1, pos: V3, vel: V3, acc: V3, fluid: I1, pid: I1,
-             pos_o: V3, vel_o: V3, acc_o: V3, fluid_o: I1, pid_o: I1):
+def k_gather(order: I1, pos: V3, ref: V3, vel: V3, acc: V3, fluid: I1, pid: I1,
+             pos_o: V3, ref_o: V3, vel_o: V3, acc_o: V3, fluid_o: I1, pid_o: I1):
     for s in order:
         i = order[s]
         pos_o[s] = pos[i]
+        ref_o[s] = ref[i]
         vel_o[s] = vel[i]
         acc_o[s] = acc[i]
         fluid_o[s] = fluid[i]
@@ -354,17 +361,22 @@ def k_gather(order: I1, pos: V3, vel: V3, acc: V3, fluid: I1, pid: I1,
 
 
 @ti.kernel
-def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1, nbr: I1, nbn: I1, cap: ti.i32,
-              start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3,
-              h: ti.f32, ftab: F2, gamma: ti.f32, oct_t: F4, oct_g: F4, lattice: ti.f32,
-              dmin: vec3, dmax: vec3, ctype: I1, cprm: F2, stats: F1, dkern: ti.template()):
-    """Density and pressure; also lists each particle's neighbours (0 < r < h, in grid order)
-    for the force pass, at nbr[i * cap ...]. A particle with more than `cap` neighbours
-    raises stats[2] to its count, and the step is redone with a larger list."""
-    for i in pos:
-        xi = pos[i]
+def k_copy3(src: V3, dst: V3):
+    for i in src:
+        dst[i] = src[i]
+
+
+@ti.kernel
+def k_neighbours(ref: V3, nbr: I1, nbn: I1, cap: ti.i32, reach: ti.f32,
+                 start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3, stats: F1):
+    """Verlet lists: every j != i within `reach` (= h + skin) of i, at the reference positions,
+    in grid order, at nbr[i * cap ...]. A particle with more than `cap` raises stats[2] to its
+    count, and the lists are built again larger. The candidate loop has no branch: in a
+    disordered fluid, whether a candidate is a neighbour is a coin toss that a branch
+    predictor keeps losing."""
+    for i in ref:
+        xi = ref[i]
         ci = cell_of(xi, origin, inv_cell, dims)
-        s = 0.0
         m = 0
         base = i * cap
         for dz, dy in ti.ndrange((-CELL_DIV, CELL_DIV + 1), (-CELL_DIV, CELL_DIV + 1)):
@@ -376,23 +388,47 @@ def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1, nbr: I1, nbn: I1,
                 c0 = flat(ivec3(x0, cy, cz), dims)
                 c1 = flat(ivec3(x1, cy, cz), dims)
                 for j in range(start[c0], start[c1] + count[c1]):
-                    r2 = (xi - pos[j]).norm_sqr()
-                    if r2 < h * h:
-                        s += K.w_r2(dkern, r2, h)
-                        if r2 > 1e-18:
-                            if m < cap:
-                                nbr[base + m] = j
-                            m += 1
+                    r2 = (xi - ref[j]).norm_sqr()
+                    nbr[base + ti.min(m, cap - 1)] = j
+                    m += ti.select((r2 < reach * reach) & (j != i), 1, 0)
         nbn[i] = ti.min(m, cap)
         if m > cap:
             ti.atomic_max(stats[2], ti.cast(m, ti.f32))
+
+
+@ti.kernel
+def k_max_displacement(pos: V3, ref: V3, out: F1):
+    for i in pos:
+        d = (pos[i] - ref[i]).norm()
+        if d > out[0]:              # read before the atomic: few particles contend
+            ti.atomic_max(out[0], d)
+
+
+@ti.kernel
+def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1, nbr: I1, nbn: I1, cap: ti.i32,
+              near: I1, nearn: I1, h: ti.f32, ftab: F2, gamma: ti.f32, oct_t: F4, oct_g: F4,
+              lattice: ti.f32, dmin: vec3, dmax: vec3, ctype: I1, cprm: F2, dkern: ti.template()):
+    """Density and pressure from the Verlet list; also copies the entries now within h (and not
+    coincident) into the exact list `near` that the force pass reads, without branching."""
+    for i in pos:
+        xi = pos[i]
+        s = K.w_r2(dkern, 0.0, h)                 # the particle itself
+        base = i * cap
+        k = 0
+        for m in range(nbn[i]):
+            j = nbr[base + m]
+            r2 = (xi - pos[j]).norm_sqr()
+            s += K.w_r2_free(dkern, r2, h)
+            near[base + k] = j
+            k += ti.select((r2 < h * h) & (r2 > 1e-18), 1, 0)
+        nearn[i] = k
         # walls: the domain's six planes and the colliders, as boundary samples on the fill
         # lattice. They take the particle's own compression, so the share f of the kernel they
         # cover scales the fluid's sum up: delta = sum_fluid / (1 - f). Exact at rest and
         # under uniform (e.g. hydrostatic) compression; f is capped for particles in corners.
         wall, _g = domain_walls(xi, dmin, dmax, h, oct_t, oct_g)
-        for k in range(ctype.shape[0]):
-            phi, _n = collider_sdf(ctype[k], cprm, k, xi)
+        for c in range(ctype.shape[0]):
+            phi, _n = collider_sdf(ctype[c], cprm, c, xi)
             if phi < h:
                 wall += table3(oct_t, 0, ti.max(phi, 0.0), 0.0, 0.0, h)   # planar approximation
         s = s / ti.max(1.0 - wall / lattice, 0.1)
@@ -542,7 +578,14 @@ class SPHSolver:
       delta   (N,)  number density sum_j W, 1/m^3
       rho     (N,)  density m_i delta_i, kg/m^3
       prs     (N,)  pressure (Tait), Pa
+      ref     (N,3) positions when the neighbour lists were last built
     Controller state: time t, step count, dt_prev (dt_{n-1/2}).
+
+    Neighbour lists (Verlet lists) hold every pair within h + skin at the reference positions.
+    They stay complete while no particle has moved skin/2 from its reference position, so they
+    (and the sort by cell) are rebuilt only when one has: about every few steps instead of
+    every step. The lists are a function of the reference positions, which checkpoints keep,
+    so a resumed run rebuilds exactly the lists it had.
     """
 
     def __init__(self, cfg: SolverConfig, state: dict[str, np.ndarray], time_s: float = 0.0,
@@ -558,7 +601,8 @@ class SPHSolver:
         self.h = h
         self.origin = vec3(*cfg.domain_min)
         size = np.array(cfg.domain_max) - np.array(cfg.domain_min)
-        cell = h / CELL_DIV
+        self.skin = SKIN * h
+        cell = (h + self.skin) / CELL_DIV         # the lists reach h + skin
         dims = np.maximum(np.ceil(size / cell).astype(int), 1)
         self.dims = ivec3(*map(int, dims))
         self.n_cells = int(np.prod(dims))
@@ -567,8 +611,8 @@ class SPHSolver:
         def v3():
             return ti.Vector.ndarray(3, ti.f32, shape=n)
 
-        self.pos, self.vel, self.acc = v3(), v3(), v3()
-        self.pos_b, self.vel_b, self.acc_b = v3(), v3(), v3()
+        self.pos, self.vel, self.acc, self.ref = v3(), v3(), v3(), v3()
+        self.pos_b, self.vel_b, self.acc_b, self.ref_b = v3(), v3(), v3(), v3()
         self.fluid, self.pid = ti.ndarray(ti.i32, n), ti.ndarray(ti.i32, n)
         self.fluid_b, self.pid_b = ti.ndarray(ti.i32, n), ti.ndarray(ti.i32, n)
         self.delta, self.rho, self.prs = (ti.ndarray(ti.f32, n) for _ in range(3))
@@ -579,9 +623,11 @@ class SPHSolver:
         self.fill = ti.ndarray(ti.i32, self.n_cells)
         self.block_sum = ti.ndarray(ti.i32, (self.n_cells + SCAN_BLOCK - 1) // SCAN_BLOCK)
         self.stats = ti.ndarray(ti.f32, 3)    # max speed, max acceleration, list overflow
-        # neighbour lists: room for 1.5x the neighbours of the fill lattice, grown on overflow
+        self.moved = ti.ndarray(ti.f32, 1)    # largest distance from the reference positions
+        # neighbour lists: room for 1.5x the fill lattice's pairs within h + skin, grown on overflow
         self.nb_cap = 0
-        self._grow_neighbours(int(1.5 * 4.0 / 3.0 * math.pi * (h / cfg.spacing) ** 3) + 8)
+        self._grow_neighbours(int(1.5 * 4.0 / 3.0 * math.pi * ((h + self.skin) / cfg.spacing) ** 3) + 8)
+        self.lists_built = 0
 
         self.ftab = ti.ndarray(ti.f32, cfg.fluid_table.shape)
         self.ftab.from_numpy(cfg.fluid_table)
@@ -602,6 +648,11 @@ class SPHSolver:
         self.acc.from_numpy(state.get("acceleration", np.zeros((n, 3), np.float32)).astype(np.float32))
         self.fluid.from_numpy(state["fluid"].astype(np.int32))
         self.pid.from_numpy(state["id"].astype(np.int32))
+        # a checkpoint's reference positions give back its lists; without them, build afresh
+        self._lists_from_ref = "position_ref" in state
+        if self._lists_from_ref:
+            self.ref.from_numpy(state["position_ref"].astype(np.float32))
+        self._lists_valid = False
         self.dmin, self.dmax = vec3(*cfg.domain_min), vec3(*cfg.domain_max)
         self.keep = 0.5 * cfg.particle_radius          # centres stay this far from any wall
         nu_max = float(np.max(cfg.fluid_table[:, F_MU] / cfg.fluid_table[:, F_RHO0]))
@@ -611,54 +662,77 @@ class SPHSolver:
         self.tension = bool((cfg.fluid_table[:, F_SIGMA] > 0).any())   # compile the colour field in?
 
     # ----------------------------------------------------------------------------- phases
-    def build_grid(self) -> None:
+    def build_lists(self) -> None:
+        """Sort the particles by the cell of their reference position (a counting sort: count,
+        scan, scatter, gather) and list the pairs within h + skin there."""
         k_fill_i(self.count, 0)
         k_fill_i(self.fill, 0)
-        k_count(self.pos, self.cell, self.count, self.origin, self.inv_cell, self.dims)
+        k_count(self.ref, self.cell, self.count, self.origin, self.inv_cell, self.dims)
         k_scan_blocks(self.count, self.start, self.block_sum, self.n_cells)
         k_scan_sums(self.block_sum, self.block_sum.shape[0])
         k_scan_add(self.start, self.block_sum, self.n_cells)
         k_scatter(self.cell, self.start, self.fill, self.order)
-        k_gather(self.order, self.pos, self.vel, self.acc, self.fluid, self.pid,
-                 self.pos_b, self.vel_b, self.acc_b, self.fluid_b, self.pid_b)
+        k_gather(self.order, self.pos, self.ref, self.vel, self.acc, self.fluid, self.pid,
+                 self.pos_b, self.ref_b, self.vel_b, self.acc_b, self.fluid_b, self.pid_b)
         self.pos, self.pos_b = self.pos_b, self.pos
+        self.ref, self.ref_b = self.ref_b, self.ref
         self.vel, self.vel_b = self.vel_b, self.vel
         self.acc, self.acc_b = self.acc_b, self.acc
         self.fluid, self.fluid_b = self.fluid_b, self.fluid
         self.pid, self.pid_b = self.pid_b, self.pid
+        while True:
+            self.stats.fill(0.0)
+            k_neighbours(self.ref, self.nbr, self.nbn, self.nb_cap, self.h + self.skin, self.start,
+                         self.count, self.origin, self.inv_cell, self.dims, self.stats)
+            most = float(self.stats.to_numpy()[2])
+            if most <= self.nb_cap:
+                break
+            self._grow_neighbours(int(1.25 * most) + 8)
+        self.lists_built += 1
+
+    def update_lists(self) -> bool:
+        """Rebuild the neighbour lists if a particle moved skin/2 from its reference position
+        (two such particles may then be within h but not listed). True if rebuilt."""
+        if self._lists_valid:
+            self.moved.fill(0.0)
+            k_max_displacement(self.pos, self.ref, self.moved)
+            if 2.0 * float(self.moved.to_numpy()[0]) < self.skin:
+                return False
+        if not self._lists_from_ref:
+            k_copy3(self.pos, self.ref)
+        self._lists_from_ref = False
+        self.build_lists()
+        self._lists_valid = True
+        return True
 
     def _grow_neighbours(self, cap: int) -> None:
         cap = -(-cap // 8) * 8
         if self.n * cap >= 2 ** 31:
             raise MemoryError(f"neighbour lists of {self.n} particles x {cap} exceed 2^31 entries")
         self.nb_cap = cap
-        self.nbr = ti.ndarray(ti.i32, max(self.n * cap, 1))
+        self.nbr = ti.ndarray(ti.i32, max(self.n * cap, 1))     # within h + skin at `ref`
         self.nbn = ti.ndarray(ti.i32, self.n)
+        self.near = ti.ndarray(ti.i32, max(self.n * cap, 1))    # within h now (a subset)
+        self.nearn = ti.ndarray(ti.i32, self.n)
 
     def density(self) -> None:
         cfg = self.cfg
-        self.stats.fill(0.0)
         k_density(self.pos, self.fluid, self.delta, self.rho, self.prs, self.nbr, self.nbn, self.nb_cap,
-                  self.start, self.count,
-                  self.origin, self.inv_cell, self.dims, self.h, self.ftab, cfg.gamma,
+                  self.near, self.nearn, self.h, self.ftab, cfg.gamma,
                   self.oct_t, self.oct_g, cfg.lattice_density, self.dmin, self.dmax, self.ctype, self.cprm,
-                  self.stats, cfg.density_kernel)
+                  cfg.density_kernel)
 
-    def forces(self) -> bool:
-        """Accelerations and the step's maxima. False if a neighbour list overflowed: the
-        lists were grown, and density and forces must run again."""
+    def forces(self) -> None:
+        """Accelerations and the step's maxima."""
         cfg = self.cfg
+        self.stats.fill(0.0)
         k_forces(self.pos, self.vel, self.acc, self.fluid, self.delta, self.rho, self.prs,
-                 self.nbr, self.nbn, self.nb_cap, self.h, self.ftab,
+                 self.near, self.nearn, self.nb_cap, self.h, self.ftab,
                  vec3(*cfg.gravity), self.oct_t, self.oct_g, self.mom, cfg.lattice_density, cfg.grad_scale,
                  cfg.surface_threshold, self.dmin, self.dmax,
                  self.ctype, self.cprm, self.stats, cfg.pressure_kernel, self.tension)
         s = self.stats.to_numpy()
         self.vmax, self.amax = float(s[0]), float(s[1])
-        if s[2] > self.nb_cap:
-            self._grow_neighbours(int(1.25 * s[2]) + 8)
-            return False
-        return True
 
     def stable_dt(self) -> float:
         """CFL (sound + flow speed), force and viscous limits, capped by max_dt."""
@@ -690,11 +764,9 @@ class SPHSolver:
             self.timer.add(name, time.perf_counter() - t0)
             return out
 
-        phase("grid", self.build_grid)
-        while True:
-            phase("density", self.density)
-            if phase("forces", self.forces):
-                break           # else a neighbour list overflowed and was grown: again
+        phase("neighbours", self.update_lists)
+        phase("density", self.density)
+        phase("forces", self.forces)
         dt = self.stable_dt()
         if t_target is not None:
             remaining = t_target - self.time
@@ -721,7 +793,7 @@ class SPHSolver:
     # --------------------------------------------------------------------------- read out
     def refresh_fields(self) -> None:
         """Density and pressure for the current positions (after the last integrate)."""
-        self.build_grid()
+        self.update_lists()
         self.density()
 
     def snapshot(self) -> dict[str, np.ndarray]:
@@ -736,9 +808,12 @@ class SPHSolver:
 
     def state(self) -> dict[str, np.ndarray]:
         """Full state in the solver's own order, for bit-exact checkpoints."""
-        return {"position": self.pos.to_numpy(), "velocity": self.vel.to_numpy(),
-                "acceleration": self.acc.to_numpy(), "fluid": self.fluid.to_numpy(),
-                "id": self.pid.to_numpy()}
+        out = {"position": self.pos.to_numpy(), "velocity": self.vel.to_numpy(),
+               "acceleration": self.acc.to_numpy(), "fluid": self.fluid.to_numpy(),
+               "id": self.pid.to_numpy()}
+        if self._lists_valid or self._lists_from_ref:
+            out["position_ref"] = self.ref.to_numpy()
+        return out
 
     def controller(self) -> dict[str, float]:
         return {"time": self.time, "step": self.steps, "dt_prev": self.dt_prev}
