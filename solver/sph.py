@@ -441,7 +441,7 @@ def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1, nbr: I1, nbn: I1,
 
 @ti.kernel
 def k_forces(pos: V3, vel: V3, acc: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
-             nbr: I1, nbn: I1, cap: ti.i32,
+             near: I1, nearn: I1, cap: ti.i32,
              h: ti.f32, ftab: F2, gravity: vec3, oct_t: F4, oct_g: F4, mom: F2, lattice: ti.f32,
              grad_scale: ti.f32, threshold: ti.f32,
              dmin: vec3, dmax: vec3, ctype: I1, cprm: F2, stats: F1, pkern: ti.template(),
@@ -457,8 +457,8 @@ def k_forces(pos: V3, vel: V3, acc: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
         n = vec3(0.0)
         lap = K.lap_poly6(0.0, h) / di      # colour field includes the particle itself
         base = i * cap
-        for m in range(nbn[i]):
-            j = nbr[base + m]
+        for m in range(nearn[i]):        # the pairs within h (see k_density)
+            j = near[base + m]
             rv = xi - pos[j]
             r = ti.sqrt(rv.norm_sqr())
             dj = delta[j]
