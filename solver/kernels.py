@@ -49,26 +49,14 @@ def w(kind: ti.template(), r: ti.f32, h: ti.f32) -> ti.f32:
 
 @ti.func
 def w_r2(kind: ti.template(), r2: ti.f32, h: ti.f32) -> ti.f32:
-    """W from the squared distance: poly6 needs no square root (the density loop's hot path)."""
-    out = 0.0
-    if ti.static(kind == POLY6):
-        if r2 < h * h:
-            d = h * h - r2
-            out = 315.0 / (64.0 * PI * h ** 9) * d * d * d
-    else:
-        out = w(kind, ti.sqrt(r2), h)
-    return out
-
-
-@ti.func
-def w_r2_free(kind: ti.template(), r2: ti.f32, h: ti.f32) -> ti.f32:
-    """w_r2 without a branch for poly6 (0 beyond h through the clamp), for candidate loops."""
+    """W from the squared distance. Poly6 needs no square root and no branch (the clamp makes it
+    0 beyond h): in the density loop, whether an entry lies within h is unpredictable."""
     out = 0.0
     if ti.static(kind == POLY6):
         d = ti.max(h * h - r2, 0.0)
         out = 315.0 / (64.0 * PI * h ** 9) * d * d * d
     else:
-        out = w_r2(kind, r2, h)
+        out = w(kind, ti.sqrt(r2), h)
     return out
 
 

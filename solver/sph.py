@@ -361,12 +361,6 @@ def k_gather(order: I1, pos: V3, ref: V3, vel: V3, acc: V3, fluid: I1, pid: I1,
 
 
 @ti.kernel
-def k_copy3(src: V3, dst: V3):
-    for i in src:
-        dst[i] = src[i]
-
-
-@ti.kernel
 def k_neighbours(ref: V3, nbr: I1, nbn: I1, cap: ti.i32, reach: ti.f32,
                  start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3, stats: F1):
     """Verlet lists: every j != i within `reach` (= h + skin) of i, at the reference positions,
@@ -418,7 +412,7 @@ def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1, nbr: I1, nbn: I1,
         for m in range(nbn[i]):
             j = nbr[base + m]
             r2 = (xi - pos[j]).norm_sqr()
-            s += K.w_r2_free(dkern, r2, h)
+            s += K.w_r2(dkern, r2, h)
             near[base + k] = j
             k += ti.select((r2 < h * h) & (r2 > 1e-18), 1, 0)
         nearn[i] = k
@@ -699,7 +693,7 @@ class SPHSolver:
             if 2.0 * float(self.moved.to_numpy()[0]) < self.skin:
                 return False
         if not self._lists_from_ref:
-            k_copy3(self.pos, self.ref)
+            self.ref.copy_from(self.pos)
         self._lists_from_ref = False
         self.build_lists()
         self._lists_valid = True
