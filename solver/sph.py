@@ -178,6 +178,14 @@ def flat(c, dims) -> ti.i32:
 
 
 @ti.func
+def raise_max(a: ti.template(), k: ti.i32, value: ti.f32):
+    """a[k] = max(a[k], value), atomically; reading first means that once the maximum is found,
+    almost no thread contends for it."""
+    if value > a[k]:
+        ti.atomic_max(a[k], value)
+
+
+@ti.func
 def table_row(t: ti.template(), row: ti.i32, d: ti.f32, h: ti.f32) -> ti.f32:
     """Linear interpolation in row `row` of a table sampled on [0, h]."""
     n = t.shape[1]
@@ -393,9 +401,7 @@ def k_neighbours(ref: V3, nbr: I1, nbn: I1, cap: ti.i32, reach: ti.f32,
 @ti.kernel
 def k_max_displacement(pos: V3, ref: V3, out: F1):
     for i in pos:
-        d = (pos[i] - ref[i]).norm()
-        if d > out[0]:              # read before the atomic: few particles contend
-            ti.atomic_max(out[0], d)
+        raise_max(out, 0, (pos[i] - ref[i]).norm())
 
 
 @ti.kernel
@@ -490,12 +496,9 @@ def k_forces(pos: V3, vel: V3, acc: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
             if sigma > 0.0 and nn * h > threshold:
                 a -= sigma * lap * n / nn / rho[i]
         acc[i] = a
-        # read before the atomic: once the maxima are found, almost no particle contends for them
         vn, an = vi.norm(), a.norm()
-        if vn > stats[0]:
-            ti.atomic_max(stats[0], vn)
-        if an > stats[1]:
-            ti.atomic_max(stats[1], an)
+        raise_max(stats, 0, vn)
+        raise_max(stats, 1, an)
 
 
 @ti.kernel
@@ -684,20 +687,19 @@ class SPHSolver:
             self._grow_neighbours(int(1.25 * most) + 8)
         self.lists_built += 1
 
-    def update_lists(self) -> bool:
+    def update_lists(self) -> None:
         """Rebuild the neighbour lists if a particle moved skin/2 from its reference position
-        (two such particles may then be within h but not listed). True if rebuilt."""
+        (two such particles may then be within h but not listed)."""
         if self._lists_valid:
             self.moved.fill(0.0)
             k_max_displacement(self.pos, self.ref, self.moved)
             if 2.0 * float(self.moved.to_numpy()[0]) < self.skin:
-                return False
+                return
         if not self._lists_from_ref:
             self.ref.copy_from(self.pos)
         self._lists_from_ref = False
         self.build_lists()
         self._lists_valid = True
-        return True
 
     def _grow_neighbours(self, cap: int) -> None:
         cap = -(-cap // 8) * 8
@@ -748,19 +750,16 @@ class SPHSolver:
     # ------------------------------------------------------------------------------- step
     def step(self, t_target: float | None = None, timed: bool = False) -> float:
         """One substep; never steps past t_target. Returns dt."""
-        def phase(name, fn):
-            if not timed:
-                return fn()
-            ti.sync()
-            t0 = time.perf_counter()
-            out = fn()
-            ti.sync()
-            self.timer.add(name, time.perf_counter() - t0)
-            return out
-
-        phase("neighbours", self.update_lists)
-        phase("density", self.density)
-        phase("forces", self.forces)
+        phases = (("neighbours", self.update_lists), ("density", self.density), ("forces", self.forces))
+        for name, fn in phases:
+            if timed:
+                ti.sync()
+                t0 = time.perf_counter()
+                fn()
+                ti.sync()
+                self.timer.add(name, time.perf_counter() - t0)
+            else:
+                fn()
         dt = self.stable_dt()
         if t_target is not None:
             remaining = t_target - self.time
