@@ -163,10 +163,14 @@ def collider_meshes(spec):
     import pyvista as pv
 
     out = []
-    for col in spec.colliders:
+    for ci, col in enumerate(spec.colliders):
         if col.mode == "container":
             continue      # the inside of a container would hide the fluid
-        if col.type == "sphere":
+        if col.type == "mesh":
+            verts, tris = spec.collider_mesh(ci)
+            m = pv.PolyData(verts, np.hstack([np.full((len(tris), 1), 3), tris]).ravel())
+            m = m.compute_normals(auto_orient_normals=True, split_vertices=True, feature_angle=60.0)
+        elif col.type == "sphere":
             m = pv.Sphere(radius=col.radius, center=col.center, theta_resolution=48, phi_resolution=48)
         elif col.type == "box":
             m = pv.Box(bounds=(col.min[0], col.max[0], col.min[1], col.max[1], col.min[2], col.max[2]))

@@ -15,6 +15,7 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import SpecError
@@ -146,7 +147,21 @@ class CapsuleCollider(Collider):
     radius: Pos
 
 
-AnyCollider = Annotated[Union[SphereCollider, BoxCollider, CapsuleCollider], Field(discriminator="type")]
+class MeshCollider(Collider):
+    """A closed triangle mesh from a file (path relative to the job file), placed by scaling,
+    then rotating about x, y and z (degrees), then translating. The solver samples its signed
+    distance on a grid of `voxel_size` particle radii (OpenVDB mesh to level set)."""
+    type: Literal["mesh"]
+    path: Annotated[str, Field(min_length=1)]
+    scale: Pos = 1.0
+    rotate: Vec3 = (0.0, 0.0, 0.0)
+    translate: Vec3 = (0.0, 0.0, 0.0)
+    voxel_size: Annotated[float, Field(ge=0.25, le=8)] = 1.0
+
+
+AnyCollider = Annotated[Union[SphereCollider, BoxCollider, CapsuleCollider, MeshCollider],
+                        Field(discriminator="type")]
+MAX_SDF_VOXELS = 1 << 24       # per mesh collider: 64 MB of float32
 
 
 # ------------------------------------------------------------------------------------ surface
@@ -240,12 +255,52 @@ class ShotSpec(Strict):
             if b - a < 2 * h:
                 raise ValueError(f"domain: extent along {axis} ({b - a:g} m) must be at least two kernel "
                                  f"radii ({2 * h:g} m)")
+        for ci, col in enumerate(self.colliders):
+            if col.type == "mesh":
+                self._check_mesh(ci, col)
         keys = [k.frame for k in self.render.camera_keys]
         if keys != sorted(set(keys)):
             raise ValueError(f"render.camera_keys: frames must be strictly increasing, got {keys}")
         return self
 
+    def _check_mesh(self, ci: int, col: MeshCollider) -> None:
+        from .meshes import MeshFileError
+
+        where = f"colliders[{ci}]"
+        try:
+            verts, _tris = self.collider_mesh(ci)
+        except MeshFileError as exc:
+            raise ValueError(f"{where}.path: {exc}") from None
+        lo, hi = self.sdf_box(verts, col)
+        if np.any(hi <= lo):
+            raise ValueError(f"{where}: the mesh lies entirely outside the domain")
+        voxels = math.prod(int(v) for v in np.ceil((hi - lo) / (col.voxel_size * self.sim.particle_radius)) + 1)
+        if voxels > MAX_SDF_VOXELS:
+            raise ValueError(f"{where}.voxel_size: the mesh's distance grid would have {voxels:,} voxels "
+                             f"(at most {MAX_SDF_VOXELS:,}); raise voxel_size or shrink the mesh")
+
     # ----------------------------------------------------------------- derived, converted once
+    def mesh_path(self, ci: int) -> Path:
+        path = Path(self.colliders[ci].path)
+        return path if path.is_absolute() else Path(self.job_dir) / path
+
+    def collider_mesh(self, ci: int) -> tuple[np.ndarray, np.ndarray]:
+        """(vertices in world space, triangles) of mesh collider ci."""
+        from .meshes import placement, read_closed_mesh
+
+        col = self.colliders[ci]
+        verts, tris = read_closed_mesh(self.mesh_path(ci))
+        matrix, offset = placement(col.scale, col.rotate, col.translate)
+        return verts @ matrix.T + offset, tris
+
+    def sdf_box(self, verts: np.ndarray, col: MeshCollider) -> tuple[np.ndarray, np.ndarray]:
+        """World box of a mesh collider's distance grid: its bounds plus one kernel radius and two
+        voxels, clipped to the domain grown by as much (nothing beyond can meet a particle)."""
+        pad = self.smoothing_radius + 2 * col.voxel_size * self.sim.particle_radius
+        lo = np.maximum(verts.min(0) - pad, np.array(self.domain.min) - pad)
+        hi = np.minimum(verts.max(0) + pad, np.array(self.domain.max) + pad)
+        return lo, hi
+
     @property
     def frames(self) -> range:
         return range(self.shot.frame_start, self.shot.frame_end + 1)
@@ -283,12 +338,19 @@ class ShotSpec(Strict):
                     "sim": self.sim.model_dump(exclude={"backend", "threads"}),
                     "domain": self.domain.model_dump(),
                     "fluids": [f.model_dump() for f in self.fluids],
-                    "colliders": [c.model_dump() for c in self.colliders]}
+                    "colliders": [c.model_dump() for c in self.colliders],
+                    "meshes": self.mesh_hashes()}
         if stage == "surface":
             return {"surface": self.surface.model_dump()}
         if stage == "render":
             return {"render": self.render.model_dump()}
         raise KeyError(stage)
+
+    def mesh_hashes(self) -> dict[int, str]:
+        """sha256 of each mesh collider's file: editing the mesh invalidates the sim."""
+        from .meshes import file_sha256
+
+        return {ci: file_sha256(self.mesh_path(ci)) for ci, c in enumerate(self.colliders) if c.type == "mesh"}
 
     def expected_max_speed(self) -> float:
         """sqrt(2 g H) over the tallest fluid column, plus the fastest initial block speed."""
@@ -317,7 +379,7 @@ def _dotted(loc: tuple) -> str:
     for part in loc:
         if isinstance(part, int):
             out += f"[{part}]"
-        elif part in ("sphere", "box", "capsule") and out.startswith("colliders"):
+        elif part in ("sphere", "box", "capsule", "mesh") and out.startswith("colliders"):
             continue  # pydantic's discriminator tag, not a key the user wrote
         else:
             out += ("." if out else "") + str(part)

@@ -43,12 +43,14 @@ I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 F4 = ti.types.ndarray(dtype=ti.f32, ndim=4)
 
-SPHERE, BOX, CAPSULE = 0, 1, 2
-COLLIDER_TYPES = {"sphere": SPHERE, "box": BOX, "capsule": CAPSULE}
+SPHERE, BOX, CAPSULE, MESH = 0, 1, 2, 3
+COLLIDER_TYPES = {"sphere": SPHERE, "box": BOX, "capsule": CAPSULE, "mesh": MESH}
 # Fluid table columns
 F_MASS, F_RHO0, F_B, F_MU, F_SIGMA = range(5)
-# Collider table columns: 7 shape params, restitution, friction, sign (+1 obstacle, -1 container)
-C_REST, C_FRIC, C_SIGN = 7, 8, 9
+# Collider table columns: 8 shape params, restitution, friction, sign (+1 obstacle, -1 container).
+# A mesh's shape params: its distance grid's origin (3), voxel size, node counts (3) and offset
+# into the flat array of all mesh grids (exact in float32 up to 2^24).
+C_REST, C_FRIC, C_SIGN = 8, 9, 10
 SCAN_BLOCK = 256
 # Cells are (h + skin) / CELL_DIV wide; a particle's list neighbours lie within CELL_DIV cells each way. With
 # CELL_DIV = 2 the 5 x 5 x 5 cells searched cover 42% less volume than 3 x 3 x 3 cells of size h,
@@ -72,8 +74,9 @@ class SolverConfig:
     domain_restitution: float
     domain_friction: float
     fluid_table: np.ndarray                    # (F, 5) mass, rho0, B, mu, sigma
-    colliders_f: np.ndarray                    # (K, 10)
+    colliders_f: np.ndarray                    # (K, 11)
     colliders_t: np.ndarray                    # (K,) int
+    collider_sdf: np.ndarray                   # mesh colliders' distance grids, flat float32
     speed_of_sound: float
     gamma: float
     cfl: float
@@ -100,26 +103,45 @@ class SolverConfig:
         gamma = spec.sim.gamma
         table = np.array([[f.rest_density / lattice, f.rest_density, f.rest_density * c * c / gamma,
                            f.viscosity, f.surface_tension] for f in spec.fluids], dtype=np.float32)
-        cf, ct = [], []
-        for col in spec.colliders:
+        cf, ct, grids = [], [], []
+        offset = 0
+        for ci, col in enumerate(spec.colliders):
             if col.type == "sphere":
-                params = [*col.center, col.radius, 0, 0, 0]
+                params = [*col.center, col.radius, 0, 0, 0, 0]
             elif col.type == "box":
-                params = [*col.min, *col.max, 0]
+                params = [*col.min, *col.max, 0, 0]
+            elif col.type == "capsule":
+                params = [*col.a, *col.b, col.radius, 0]
             else:
-                params = [*col.a, *col.b, col.radius]
+                g = mesh_collider_grid(spec, ci)
+                params = [*g.origin, g.voxel, *g.phi.shape, offset]
+                offset += g.phi.size
+                grids.append(g.phi.ravel())
             cf.append(params + [col.restitution, col.friction, 1.0 if col.mode == "obstacle" else -1.0])
             ct.append(COLLIDER_TYPES[col.type])
         if not cf:  # Taichi ndarrays cannot be empty: one inert collider far away
-            cf, ct = [[1e9, 1e9, 1e9, 1.0, 0, 0, 0, 0, 0, 1.0]], [SPHERE]
+            cf, ct = [[1e9, 1e9, 1e9, 1.0, 0, 0, 0, 0, 0, 0, 1.0]], [SPHERE]
         return cls(particle_radius=r, h=h, gravity=tuple(spec.sim.gravity),
                    domain_min=tuple(spec.domain.min), domain_max=tuple(spec.domain.max),
                    domain_restitution=spec.domain.restitution, domain_friction=spec.domain.friction,
                    fluid_table=table, colliders_f=np.asarray(cf, np.float32),
-                   colliders_t=np.asarray(ct, np.int32), speed_of_sound=c, gamma=gamma,
+                   colliders_t=np.asarray(ct, np.int32),
+                   collider_sdf=np.concatenate(grids or [np.zeros(1)]).astype(np.float32),
+                   speed_of_sound=c, gamma=gamma,
                    cfl=spec.sim.cfl, max_dt=spec.sim.max_dt,
                    surface_threshold=spec.sim.surface_threshold, density_kernel=dk,
                    pressure_kernel=pk, lattice_density=lattice, grad_scale=grad_scale)
+
+
+def mesh_collider_grid(spec, ci: int):
+    """Mesh collider ci's signed distance, sampled where particles can meet it."""
+    from .meshsdf import sample_sdf
+
+    col = spec.colliders[ci]
+    verts, tris = spec.collider_mesh(ci)
+    lo, hi = spec.sdf_box(verts, col)
+    voxel = col.voxel_size * spec.sim.particle_radius
+    return sample_sdf(verts, tris, lo, hi, voxel, depth=spec.smoothing_radius + 2 * voxel)
 
 
 def fill_blocks(spec, cfg: "SolverConfig | None" = None) -> dict[str, np.ndarray]:
@@ -130,6 +152,9 @@ def fill_blocks(spec, cfg: "SolverConfig | None" = None) -> dict[str, np.ndarray
     the block's top. Starting at zero pressure instead, a resting column would drop until it
     is compressed and then breathe acoustically for seconds (its long acoustic modes are barely
     damped), biasing every pressure it reports.
+
+    With cfg, lattice sites closer than one particle radius to a collider's solid side (inside
+    an obstacle, outside a container) are left empty: blocks may overlap colliders.
     """
     d = 2.0 * spec.sim.particle_radius
     g = np.array(spec.sim.gravity, np.float64)
@@ -148,9 +173,28 @@ def fill_blocks(spec, cfg: "SolverConfig | None" = None) -> dict[str, np.ndarray
             vel.append(np.broadcast_to(np.array(b.velocity), p.shape))
             fluid.append(np.full(len(p), fi))
     pos = np.concatenate(pos).astype(np.float32)
-    return {"position": pos, "velocity": np.concatenate(vel).astype(np.float32),
-            "acceleration": np.zeros_like(pos), "fluid": np.concatenate(fluid).astype(np.int32),
+    vel, fluid = np.concatenate(vel).astype(np.float32), np.concatenate(fluid).astype(np.int32)
+    if cfg is not None and spec.colliders:
+        free = collider_clearance(cfg, pos) >= spec.sim.particle_radius
+        pos, vel, fluid = pos[free], vel[free], fluid[free]
+    return {"position": pos, "velocity": vel, "acceleration": np.zeros_like(pos), "fluid": fluid,
             "id": np.arange(len(pos), dtype=np.int32)}
+
+
+def collider_clearance(cfg: SolverConfig, points: np.ndarray) -> np.ndarray:
+    """Each point's smallest signed distance to the colliders (negative: on the solid side)."""
+    n = max(len(points), 1)
+    pos = ti.Vector.ndarray(3, ti.f32, shape=n)
+    pos.from_numpy(np.resize(np.asarray(points, np.float32), (n, 3)))
+    out = ti.ndarray(ti.f32, shape=n)
+    ctype = ti.ndarray(ti.i32, cfg.colliders_t.shape)
+    ctype.from_numpy(cfg.colliders_t)
+    cprm = ti.ndarray(ti.f32, cfg.colliders_f.shape)
+    cprm.from_numpy(cfg.colliders_f)
+    sdf = ti.ndarray(ti.f32, cfg.collider_sdf.shape)
+    sdf.from_numpy(cfg.collider_sdf)
+    k_clearance(pos, ctype, cprm, sdf, out)
+    return out.to_numpy()[:len(points)]
 
 
 def _hydrostatic(p, lo, hi, up, g, fluid_row, gamma):
@@ -255,7 +299,41 @@ def domain_walls(x, dmin, dmax, h: ti.f32, T: ti.template(), G: ti.template()):
 
 
 @ti.func
-def collider_sdf(kind: ti.i32, prm: ti.template(), k: ti.i32, p):
+def mesh_sdf(prm: ti.template(), sdf: ti.template(), k: ti.i32, p):
+    """Trilinear signed distance of mesh collider k, and the normalised gradient of that
+    trilinear field. Beyond the grid, the distance to the grid's box is added to the value at
+    the nearest grid point (the grid reaches a kernel radius past the mesh, so this is far)."""
+    origin = vec3(prm[k, 0], prm[k, 1], prm[k, 2])
+    inv = 1.0 / prm[k, 3]
+    dims = ivec3(ti.cast(prm[k, 4], ti.i32), ti.cast(prm[k, 5], ti.i32), ti.cast(prm[k, 6], ti.i32))
+    base = ti.cast(prm[k, 7], ti.i32)
+    g = (p - origin) * inv
+    gc = ti.math.clamp(g, 0.0, ti.cast(dims - 1, ti.f32))
+    i = ti.min(ti.cast(ti.floor(gc), ti.i32), dims - 2)
+    f = gc - ti.cast(i, ti.f32)
+    phi = 0.0
+    grad = vec3(0.0)
+    for dx, dy, dz in ti.static(ti.ndrange(2, 2, 2)):
+        v = sdf[base + (i.x + dx) * dims.y * dims.z + (i.y + dy) * dims.z + i.z + dz]
+        wx = f.x if dx else 1.0 - f.x
+        wy = f.y if dy else 1.0 - f.y
+        wz = f.z if dz else 1.0 - f.z
+        phi += wx * wy * wz * v
+        grad += v * vec3((1.0 if dx else -1.0) * wy * wz, (1.0 if dy else -1.0) * wx * wz,
+                         (1.0 if dz else -1.0) * wx * wy)
+    n = vec3(0.0, 1.0, 0.0)
+    outside = (g - gc) / inv
+    off = outside.norm()
+    if off > 0.0:
+        phi += off
+        n = outside / off
+    elif grad.norm_sqr() > 1e-12:
+        n = grad.normalized()
+    return phi, n
+
+
+@ti.func
+def collider_sdf(kind: ti.i32, prm: ti.template(), sdf: ti.template(), k: ti.i32, p):
     """Signed distance (positive outside the solid) and outward unit normal of collider k."""
     phi = 0.0
     n = vec3(0.0, 1.0, 0.0)
@@ -288,6 +366,8 @@ def collider_sdf(kind: ti.i32, prm: ti.template(), k: ti.i32, p):
                 axis = 2
             n = vec3(0.0)
             n[axis] = 1.0 if d[axis] >= 0 else -1.0
+    elif kind == MESH:
+        phi, n = mesh_sdf(prm, sdf, k, p)
     else:  # capsule: segment a-b with radius
         a = vec3(prm[k, 0], prm[k, 1], prm[k, 2])
         b = vec3(prm[k, 3], prm[k, 4], prm[k, 5])
@@ -303,6 +383,16 @@ def collider_sdf(kind: ti.i32, prm: ti.template(), k: ti.i32, p):
 
 
 # ===================================================================================== kernels
+@ti.kernel
+def k_clearance(pos: V3, ctype: I1, cprm: F2, sdf: F1, out: F1):
+    for i in pos:
+        best = 1e30
+        for k in range(ctype.shape[0]):
+            phi, _n = collider_sdf(ctype[k], cprm, sdf, k, pos[i])
+            best = ti.min(best, phi)
+        out[i] = best
+
+
 @ti.kernel
 def k_fill_i(a: I1, value: ti.i32):
     for i in a:
@@ -407,7 +497,7 @@ def k_max_displacement(pos: V3, ref: V3, out: F1):
 @ti.kernel
 def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1, nbr: I1, nbn: I1, cap: ti.i32,
               near: I1, nearn: I1, h: ti.f32, ftab: F2, gamma: ti.f32, oct_t: F4, oct_g: F4,
-              lattice: ti.f32, dmin: vec3, dmax: vec3, ctype: I1, cprm: F2, dkern: ti.template()):
+              lattice: ti.f32, dmin: vec3, dmax: vec3, ctype: I1, cprm: F2, sdf: F1, dkern: ti.template()):
     """Density and pressure from the Verlet list; also copies the entries now within h (and not
     coincident) into the exact list `near` that the force pass reads, without branching."""
     for i in pos:
@@ -428,7 +518,7 @@ def k_density(pos: V3, fluid: I1, delta: F1, rho: F1, prs: F1, nbr: I1, nbn: I1,
         # under uniform (e.g. hydrostatic) compression; f is capped for particles in corners.
         wall, _g = domain_walls(xi, dmin, dmax, h, oct_t, oct_g)
         for c in range(ctype.shape[0]):
-            phi, _n = collider_sdf(ctype[c], cprm, c, xi)
+            phi, _n = collider_sdf(ctype[c], cprm, sdf, c, xi)
             if phi < h:
                 wall += table3(oct_t, 0, ti.max(phi, 0.0), 0.0, 0.0, h)   # planar approximation
         s = s / ti.max(1.0 - wall / lattice, 0.1)
@@ -444,7 +534,7 @@ def k_forces(pos: V3, vel: V3, acc: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
              near: I1, nearn: I1, cap: ti.i32,
              h: ti.f32, ftab: F2, gravity: vec3, oct_t: F4, oct_g: F4, mom: F2, lattice: ti.f32,
              grad_scale: ti.f32, threshold: ti.f32,
-             dmin: vec3, dmax: vec3, ctype: I1, cprm: F2, stats: F1, pkern: ti.template(),
+             dmin: vec3, dmax: vec3, ctype: I1, cprm: F2, sdf: F1, stats: F1, pkern: ti.template(),
              tension: ti.template()):
     for i in pos:
         xi, vi = pos[i], vel[i]
@@ -485,7 +575,7 @@ def k_forces(pos: V3, vel: V3, acc: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
                 e[ax] = ds[ax]
                 hyd += hydrostatic_wall(da[ax], e, gravity, mom, h)
         for k in range(ctype.shape[0]):
-            phi, nk = collider_sdf(ctype[k], cprm, k, xi)
+            phi, nk = collider_sdf(ctype[k], cprm, sdf, k, xi)
             if phi < h:
                 a += wall * table3(oct_g, 0, ti.max(phi, 0.0), 0.0, 0.0, h) * nk
                 hyd += hydrostatic_wall(ti.max(phi, 0.0), nk, gravity, mom, h)
@@ -503,14 +593,14 @@ def k_forces(pos: V3, vel: V3, acc: V3, fluid: I1, delta: F1, rho: F1, prs: F1,
 
 @ti.kernel
 def k_integrate(pos: V3, vel: V3, acc: V3, kick: ti.f32, dt: ti.f32, keep: ti.f32,
-                dmin: vec3, dmax: vec3, rest: ti.f32, fric: ti.f32, ctype: I1, cprm: F2):
+                dmin: vec3, dmax: vec3, rest: ti.f32, fric: ti.f32, ctype: I1, cprm: F2, sdf: F1):
     for i in pos:
         v = vel[i] + kick * acc[i]
         x = pos[i] + dt * v
         # colliders: project to the surface (plus `keep`), reflect the normal velocity with
         # restitution, and apply Coulomb friction to the tangential part
         for k in range(ctype.shape[0]):
-            phi, n = collider_sdf(ctype[k], cprm, k, x)
+            phi, n = collider_sdf(ctype[k], cprm, sdf, k, x)
             if phi < keep:
                 x += (keep - phi) * n
                 vn = v.dot(n)
@@ -632,6 +722,8 @@ class SPHSolver:
         self.ctype.from_numpy(cfg.colliders_t)
         self.cprm = ti.ndarray(ti.f32, cfg.colliders_f.shape)
         self.cprm.from_numpy(cfg.colliders_f)
+        self.sdf = ti.ndarray(ti.f32, cfg.collider_sdf.shape)
+        self.sdf.from_numpy(cfg.collider_sdf)
         ot, og = K.ghost_tables(cfg.density_kernel, cfg.pressure_kernel, h, cfg.particle_radius)
         self.oct_t = ti.ndarray(ti.f32, ot.shape)
         self.oct_t.from_numpy(ot)
@@ -715,7 +807,7 @@ class SPHSolver:
         cfg = self.cfg
         k_density(self.pos, self.fluid, self.delta, self.rho, self.prs, self.nbr, self.nbn, self.nb_cap,
                   self.near, self.nearn, self.h, self.ftab, cfg.gamma,
-                  self.oct_t, self.oct_g, cfg.lattice_density, self.dmin, self.dmax, self.ctype, self.cprm,
+                  self.oct_t, self.oct_g, cfg.lattice_density, self.dmin, self.dmax, self.ctype, self.cprm, self.sdf,
                   cfg.density_kernel)
 
     def forces(self) -> None:
@@ -726,7 +818,7 @@ class SPHSolver:
                  self.near, self.nearn, self.nb_cap, self.h, self.ftab,
                  vec3(*cfg.gravity), self.oct_t, self.oct_g, self.mom, cfg.lattice_density, cfg.grad_scale,
                  cfg.surface_threshold, self.dmin, self.dmax,
-                 self.ctype, self.cprm, self.stats, cfg.pressure_kernel, self.tension)
+                 self.ctype, self.cprm, self.sdf, self.stats, cfg.pressure_kernel, self.tension)
         s = self.stats.to_numpy()
         self.vmax, self.amax = float(s[0]), float(s[1])
 
@@ -742,7 +834,7 @@ class SPHSolver:
         cfg = self.cfg
         kick = 0.5 * (self.dt_prev + dt)
         k_integrate(self.pos, self.vel, self.acc, kick, dt, self.keep, self.dmin, self.dmax,
-                    cfg.domain_restitution, cfg.domain_friction, self.ctype, self.cprm)
+                    cfg.domain_restitution, cfg.domain_friction, self.ctype, self.cprm, self.sdf)
         self.dt_prev = dt
         self.time += dt
         self.steps += 1

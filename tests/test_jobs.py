@@ -1,6 +1,8 @@
 """Every example job in jobs/ runs through every stage with small overrides, so none rots."""
 from __future__ import annotations
 
+import shutil
+
 import pytest
 
 from conftest import JOBS, small, sphshot
@@ -14,6 +16,7 @@ pytestmark = pytest.mark.slow
 def test_example_job_runs_end_to_end(job_file, tmp_path):
     job = tmp_path / job_file.name
     job.write_text(job_file.read_text())
+    shutil.copytree(job_file.parent / "assets", tmp_path / "assets")   # meshes the jobs refer to
     assert sphshot("validate", job).returncode == 0
     proc = sphshot("run", job, *small(), check=True)
     spec = load_spec(job, [s for s in small() if s != "--set"])

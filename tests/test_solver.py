@@ -304,6 +304,140 @@ def test_container_capsule_keeps_particles_inside():
         assert dist.max() <= c.radius + 1e-5, f"frame {k}: a particle left the container by {dist.max() - c.radius:.2e} m"
 
 
+# ---------------------------------------------------------------------------- mesh colliders
+def ball_mesh(path, nsub=4):
+    """A unit icosphere written as OBJ; its triangles are chords of the sphere."""
+    import meshio
+    import pyvista as pv
+
+    s = pv.Icosphere(radius=1.0, nsub=nsub)
+    meshio.write(path, meshio.Mesh(np.asarray(s.points), [("triangle", s.faces.reshape(-1, 4)[:, 1:])]))
+    return path
+
+
+def ball_spec(tmp_path, block, mode="obstacle", centre=(0.45, 0.25, 0.2), radius=0.08, velocity=(0.0, 0.0, 0.0)):
+    return {"shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
+            "domain": {"min": (0, 0, 0), "max": (1.0, 0.6, 0.4)},
+            "fluids": ({"name": "w", "blocks": ({"min": block[0], "max": block[1], "velocity": velocity},)},),
+            "colliders": ({"type": "mesh", "path": str(ball_mesh(tmp_path / "ball.obj")), "scale": radius,
+                           "translate": centre, "mode": mode},)}
+
+
+def ball_tolerance(spec):
+    """How far the sampled distance may stray from the exact sphere's: the faceting (the mesh's
+    flattest face lies `sag` inside the sphere) plus trilinear interpolation's error, at most
+    voxel^2 / 8 times the sum of the largest second derivatives of |x - c| along each axis
+    (1 / rho each), for rho >= R - h."""
+    verts, tris = spec.collider_mesh(0)
+    c, R, h = np.array(spec.colliders[0].translate), spec.colliders[0].scale, spec.smoothing_radius
+    a, b, d = (verts[tris[:, k]] - c for k in range(3))
+    n = np.cross(b - a, d - a)
+    sag = R - np.min(np.abs((n * a).sum(1)) / np.linalg.norm(n, axis=1))
+    voxel = spec.colliders[0].voxel_size * spec.sim.particle_radius
+    return sag, sag + 3 * voxel ** 2 / (8 * (R - h)) + 1e-6
+
+
+def test_mesh_collider_distance_matches_the_analytic_sphere(tmp_path):
+    """OpenVDB's distance grid of an icosphere, sampled by the solver, against |x - c| - R."""
+    from solver.sph import SolverConfig, collider_clearance
+
+    spec = ShotSpec.model_validate(ball_spec(tmp_path, ((0.02, 0.02, 0.02), (0.2, 0.2, 0.2))))
+    cfg = SolverConfig.from_spec(spec)
+    c, R, h = np.array(spec.colliders[0].translate), spec.colliders[0].scale, spec.smoothing_radius
+    rng = np.random.default_rng(7)
+    u = rng.normal(size=(4000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    exact = rng.uniform(-h, h, 4000)             # within one kernel radius either side
+    p = c + u * (R + exact)[:, None]
+    sag, tol = ball_tolerance(spec)
+    err = collider_clearance(cfg, p) - exact
+    voxel = spec.colliders[0].voxel_size * spec.sim.particle_radius
+    near = exact > -voxel           # outside, or less than one voxel deep
+    assert sag > 0 and np.abs(err[near]).max() < tol, f"max error {np.abs(err[near]).max():.2e} m, allowed {tol:.2e} m"
+    # there the faceted mesh lies inside the sphere, and trilinear interpolation of a convex
+    # function (the distance to a convex solid) overestimates it: both errors are >= 0
+    assert err[near].min() > -1e-6, err[near].min()
+    # deeper inside, OpenVDB grows its band from the surface inward with each voxel's
+    # neighbours' closest triangles, not an exact search: measured within 0.1 voxel here
+    assert np.abs(err[~near]).max() < tol + 0.15 * voxel, np.abs(err[~near]).max()
+    # normals: the gradient of the trilinear field points along the radius
+    from solver.sph import vec3  # noqa: F401  (taichi is initialised by the fixture)
+    normals = _collider_normals(cfg, p)
+    cosines = (normals * u).sum(1)
+    # near the surface within 8 degrees (measured 5: facets and the gradient of a trilinear
+    # field); deeper inside within 25 degrees (measured 17), still pushing particles outward
+    assert cosines[near].min() > 0.99 and cosines[near].mean() > 0.999, (cosines[near].min(), cosines[near].mean())
+    assert cosines[~near].min() > 0.9, cosines[~near].min()
+
+
+def _collider_normals(cfg, points):
+    import taichi as ti
+
+    from solver.sph import V3, F1, F2, I1, collider_sdf
+
+    @ti.kernel
+    def normals(pos: V3, ctype: I1, cprm: F2, sdf: F1, out: V3):
+        for i in pos:
+            _phi, n = collider_sdf(ctype[0], cprm, sdf, 0, pos[i])
+            out[i] = n
+
+    arrays = []
+    for a, dt in ((cfg.colliders_t, ti.i32), (cfg.colliders_f, ti.f32), (cfg.collider_sdf, ti.f32)):
+        nd = ti.ndarray(dt, a.shape)
+        nd.from_numpy(a)
+        arrays.append(nd)
+    pos, out = ti.Vector.ndarray(3, ti.f32, len(points)), ti.Vector.ndarray(3, ti.f32, len(points))
+    pos.from_numpy(points.astype(np.float32))
+    normals(pos, *arrays, out)
+    return out.to_numpy()
+
+
+def test_no_particle_inside_a_mesh_obstacle(tmp_path):
+    """A fast stream into an icosphere mesh: the particles reach it and none ends inside."""
+    spec, cfg, s = make_solver(ball_spec(tmp_path, ((0.02, 0.2, 0.1), (0.2, 0.4, 0.3)), velocity=(4.0, 0.0, 0.0)))
+    c, R = np.array(spec.colliders[0].translate), spec.colliders[0].scale
+    _sag, tol = ball_tolerance(spec)
+    closest = np.inf
+    for k in range(1, 13):
+        s.advance_to(k / 48)
+        dist = np.linalg.norm(s.pos.to_numpy().astype(np.float64) - c, axis=1) - R
+        closest = min(closest, dist.min())
+        assert dist.min() > -tol, f"frame {k}: a particle is {-dist.min():.2e} m inside the mesh"
+    assert closest < spec.sim.particle_radius, f"the stream never reached the mesh (closest {closest:.3f} m)"
+
+
+def test_mesh_container_keeps_particles_inside(tmp_path):
+    spec, cfg, s = make_solver(ball_spec(tmp_path, ((0.4, 0.25, 0.15), (0.5, 0.3, 0.25)), mode="container",
+                                         centre=(0.45, 0.25, 0.2), radius=0.12))
+    c, R = np.array(spec.colliders[0].translate), spec.colliders[0].scale
+    _sag, tol = ball_tolerance(spec)
+    for k in range(1, 9):
+        s.advance_to(k / 48)
+        dist = np.linalg.norm(s.pos.to_numpy().astype(np.float64) - c, axis=1) - R
+        assert dist.max() < tol, f"frame {k}: a particle left the container by {dist.max():.2e} m"
+    assert dist.max() > -0.1 * R, "the fluid never reached the container's wall"
+
+
+def test_fill_leaves_colliders_empty(tmp_path):
+    """A block overlapping an obstacle is filled around it, not inside it."""
+    from solver.sph import SolverConfig, fill_blocks
+
+    block = ((0.3, 0.1, 0.05), (0.6, 0.4, 0.35))
+    spec = ShotSpec.model_validate({**ball_spec(tmp_path, block), "sim": {"particle_radius": 0.01, "gravity": (0, 0, 0)}})
+    cfg = SolverConfig.from_spec(spec)
+    full = fill_blocks(spec)["position"]
+    kept = fill_blocks(spec, cfg)["position"]
+    c, R, r = np.array(spec.colliders[0].translate), spec.colliders[0].scale, spec.sim.particle_radius
+    _sag, tol = ball_tolerance(spec)
+    dist_full = np.linalg.norm(full - c, axis=1) - R
+    assert (np.linalg.norm(kept - c, axis=1) - R).min() > r - tol
+    # exactly the lattice sites within r of the solid were dropped (bar sites within tol of that shell)
+    clear = dist_full >= r + tol
+    unsure = np.abs(dist_full - r) < tol
+    assert clear.sum() <= len(kept) <= clear.sum() + unsure.sum()
+    assert len(kept) < len(full)
+
+
 # --------------------------------------------------------------------------- determinism
 def test_stop_and_resume_is_bit_identical_on_one_thread(tmp_path):
     """Frames after a resume from a checkpoint equal those of an uninterrupted run, bit for bit."""
