@@ -75,6 +75,8 @@ def run(spec, frames, paths, progress) -> None:
         init_taichi(spec.sim.backend, spec.sim.threads)
     except BackendUnavailable as exc:
         raise StageError(str(exc)) from None
+    from .sph import Unstable
+
     todo = sorted(frames)
     last = todo[-1]
     cfg, solver, ckpt_frame = build_solver(spec, paths, todo[0])
@@ -93,7 +95,10 @@ def run(spec, frames, paths, progress) -> None:
     wall0, steps0 = time.perf_counter(), solver.steps
     try:
         for frame in range(start + 1, last + 1):
-            done = solver.advance_to(spec.frame_time(frame), should_stop=lambda: _STOP["signal"] is not None)
+            try:
+                done = solver.advance_to(spec.frame_time(frame), should_stop=lambda: _STOP["signal"] is not None)
+            except Unstable as exc:
+                raise StageError(f"frame {frame:04d}: sim unstable: {exc}; lower sim.cfl or sim.max_dt") from None
             if not done:
                 # checkpoint named after the last finished frame, holding the exact mid-frame state
                 write_checkpoint(paths, frame - 1, solver)

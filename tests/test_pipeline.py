@@ -94,6 +94,21 @@ def test_surface_waits_on_missing_sim_frames(tmp_path):
     assert "Traceback" not in proc.stderr
 
 
+def test_unstable_sim_stops_naming_frame_and_parameter_and_keeps_earlier_frames(tmp_path):
+    """A speed of sound of 1 m/s lets the collapsing column compress past the density bound."""
+    job = tmp_path / "dambreak.toml"
+    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    args = small("sim.speed_of_sound=1.0")
+    proc = sphshot("run", job, *args, "--stage", "sim")
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("sphshot: error:")]
+    assert proc.returncode == 1, proc.stderr
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert "frame 0002: sim unstable: density reached" in lines[0]
+    assert "sim.max_density_ratio" in lines[0] and "raise sim.speed_of_sound" in lines[0]
+    spec = spec_of(job, args)
+    assert cache.scan(spec, cache.ShotPaths.for_spec(spec), "sim", spec.frames).valid == (1,)
+
+
 def _all_final_files_complete(root: Path) -> int:
     """Every file under a final name opens and holds its datasets; returns how many."""
     n = 0

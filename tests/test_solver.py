@@ -304,6 +304,24 @@ def test_container_capsule_keeps_particles_inside():
         assert dist.max() <= c.radius + 1e-5, f"frame {k}: a particle left the container by {dist.max() - c.radius:.2e} m"
 
 
+def test_a_blown_up_state_raises_instead_of_crawling():
+    """Particles squeezed 100-fold: pressure explodes. Unguarded, the force limit makes the
+    first step 3e-8 s (the acoustic step is 1e-3 s) and the block bursts apart at 1,500 m/s,
+    yet ends the frame without a NaN; the solver stops and says so instead."""
+    from solver.sph import Unstable
+
+    def squeeze(state):
+        p = state["position"]
+        state["position"] = (p.mean(0) + 0.01 * (p - p.mean(0))).astype(np.float32)
+
+    _spec, _cfg, s = make_solver({"shot": {"name": "t"}, "sim": {"particle_radius": 0.02},
+                                  "fluids": ({"name": "w", "blocks": ({"min": (0.3, 0.1, 0.1),
+                                                                       "max": (0.5, 0.3, 0.3)},)},)},
+                                 mutate=squeeze)
+    with pytest.raises(Unstable, match="time step fell to"):
+        s.advance_to(1 / 24)
+
+
 # ---------------------------------------------------------------------------- mesh colliders
 def ball_mesh(path, nsub=4):
     """A unit icosphere written as OBJ; its triangles are chords of the sphere."""
