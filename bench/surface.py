@@ -67,8 +67,9 @@ def child_sphshot(path: str, repeat: int, vdb_dir: str, mode: str) -> None:
     colour_field(P[:2000], None, vol[:2000], CUBE * R, SUPPORT * R)
 
     def timed(v):
-        times = []
+        times, field, mesh = [], None, None
         for _ in range(repeat):
+            field = mesh = None          # peak memory is that of one reconstruction, not two
             t0 = time.perf_counter()
             field = colour_field(P, v, vol, CUBE * R, SUPPORT * R, ISO)
             t1 = time.perf_counter()
@@ -100,7 +101,9 @@ P = np.load(sys.argv[1]); repeat = int(sys.argv[2])
 a = dict(particle_radius=%r, smoothing_length=%r, cube_size=%r, iso_surface_threshold=%r)
 ps.reconstruct_surface(P[:2000], **a)
 ts = []
+rec = None
 for _ in range(repeat):
+    rec = None   # peak memory is that of one reconstruction, not two
     t = time.perf_counter(); rec = ps.reconstruct_surface(P, **a); ts.append(time.perf_counter() - t)
 T = np.asarray(rec.mesh.triangles)
 e = np.sort(np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]]), axis=1)

@@ -145,20 +145,21 @@ def marching_cubes(field: Field, iso: float) -> Mesh:
 
     # tile the blocks into one array about as deep as it is wide, so that float32 vertex
     # coordinates keep their precision (a 10^5-node-long stack would round them to 1/100 cell)
+    # (the tiles are written straight into the volume through a 6-d view: no second copy)
     t = int(np.ceil(len(todo) ** (1 / 3)))
-    tiles = np.zeros((t * t * t, B + 1, B + 1, B + 1), np.float32)   # spare tiles: all outside
-    ext = tiles[:len(todo)]
+    volume = np.zeros((t * (B + 1),) * 3, np.float32)            # spare tiles: all outside
+    tile_view = volume.reshape(t, B + 1, t, B + 1, t, B + 1).transpose(0, 2, 4, 1, 3, 5)
+    a, b, c = np.unravel_index(np.arange(len(todo)), (t, t, t))
     C = field.colour
-    ext[:, :B, :B, :B] = C[todo]
-    ext[:, B, :B, :B] = C[n[0], 0]
-    ext[:, :B, B, :B] = C[n[1], :, 0]
-    ext[:, :B, :B, B] = C[n[2], :, :, 0]
-    ext[:, B, B, :B] = C[n[3], 0, 0]
-    ext[:, B, :B, B] = C[n[4], 0, :, 0]
-    ext[:, :B, B, B] = C[n[5], :, 0, 0]
-    ext[:, B, B, B] = C[n[6], 0, 0, 0]
-    volume = tiles.reshape(t, t, t, B + 1, B + 1, B + 1).transpose(0, 3, 1, 4, 2, 5).reshape((t * (B + 1),) * 3)
-    del tiles
+    tile_view[a, b, c, :B, :B, :B] = C[todo]
+    tile_view[a, b, c, B, :B, :B] = C[n[0], 0]
+    tile_view[a, b, c, :B, B, :B] = C[n[1], :, 0]
+    tile_view[a, b, c, :B, :B, B] = C[n[2], :, :, 0]
+    tile_view[a, b, c, B, B, :B] = C[n[3], 0, 0]
+    tile_view[a, b, c, B, :B, B] = C[n[4], 0, :, 0]
+    tile_view[a, b, c, :B, B, B] = C[n[5], :, 0, 0]
+    tile_view[a, b, c, B, B, B] = C[n[6], 0, 0, 0]
+    del tile_view
     # no cells between two tiles. scikit-image tests a cell's mask at its far corner (checked
     # by tests/test_surfacing.py against marching cubes on the dense array)
     mask = np.ones(volume.shape, bool)

@@ -40,31 +40,36 @@ def surface_frame(spec, data: dict, attrs: dict, frame: int):
 def run(spec, frames, paths, progress) -> None:
     from solver.backend import BackendUnavailable, init_taichi
 
-    from . import vdb
-    from .reconstruct import GridTooLarge, write_mesh
-
     try:
         init_taichi(spec.sim.backend, spec.sim.threads)
     except BackendUnavailable as exc:
         raise StageError(str(exc)) from None
     for frame in frames:
-        src = paths.sim_frame(frame)
-        try:
-            data, attrs = read_frame(src)
-        except OSError as exc:
-            raise StageError(f"frame {frame:04d}: surfacing: cannot read {src}: {exc}") from None
-        try:
-            field, mesh, per_fluid = surface_frame(spec, data, attrs, frame)
-        except GridTooLarge as exc:
-            raise StageError(f"frame {frame:04d}: surfacing: {exc}") from None
-        written = []
-        grids = vdb.build_grids(field, mesh, frame, float(attrs.get("time", spec.frame_time(frame))),
-                                spec.surface.half_width, extra_surfaces=per_fluid.items())
-        with atomic_path(paths.surface_vdb(frame)) as tmp:
-            vdb.write(tmp, grids)
-        written.append(paths.surface_vdb(frame))
-        for key, path in paths.surface_meshes(frame).items():
-            with atomic_path(path) as tmp:
-                write_mesh(tmp, mesh if key is None else per_fluid[key], spec.surface.format)
-            written.append(path)
-        progress.frame_done(frame, written)
+        # one function call a frame: its particles, fields and meshes are freed before the next
+        progress.frame_done(frame, _write_frame(spec, frame, paths))
+
+
+def _write_frame(spec, frame: int, paths) -> list:
+    from . import vdb
+    from .reconstruct import GridTooLarge, write_mesh
+
+    src = paths.sim_frame(frame)
+    try:
+        data, attrs = read_frame(src)
+    except OSError as exc:
+        raise StageError(f"frame {frame:04d}: surfacing: cannot read {src}: {exc}") from None
+    try:
+        field, mesh, per_fluid = surface_frame(spec, data, attrs, frame)
+    except GridTooLarge as exc:
+        raise StageError(f"frame {frame:04d}: surfacing: {exc}") from None
+    written = []
+    grids = vdb.build_grids(field, mesh, frame, float(attrs.get("time", spec.frame_time(frame))),
+                            spec.surface.half_width, extra_surfaces=per_fluid.items())
+    with atomic_path(paths.surface_vdb(frame)) as tmp:
+        vdb.write(tmp, grids)
+    written.append(paths.surface_vdb(frame))
+    for key, path in paths.surface_meshes(frame).items():
+        with atomic_path(path) as tmp:
+            write_mesh(tmp, mesh if key is None else per_fluid[key], spec.surface.format)
+        written.append(path)
+    return written
