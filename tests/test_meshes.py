@@ -9,26 +9,9 @@ from pipeline import cache
 from pipeline.cli import main
 from pipeline.meshes import read_closed_mesh
 from pipeline.spec import load_spec
+from test_spec_errors import GOOD
 
-JOB = """
-[shot]
-name = "t"
-frame_end = 4
-output = "out"
-
-[sim]
-particle_radius = 0.02
-
-[domain]
-min = [0.0, 0.0, 0.0]
-max = [1.0, 0.6, 0.4]
-
-[[fluids]]
-name = "water"
-[[fluids.blocks]]
-min = [0.0, 0.0, 0.0]
-max = [0.3, 0.3, 0.4]
-
+JOB = GOOD + """
 [[colliders]]
 type = "mesh"
 path = "{path}"
