@@ -161,7 +161,9 @@ class MeshCollider(Collider):
 
 AnyCollider = Annotated[Union[SphereCollider, BoxCollider, CapsuleCollider, MeshCollider],
                         Field(discriminator="type")]
-MAX_SDF_VOXELS = 1 << 24       # per mesh collider: 64 MB of float32
+# all mesh colliders' distance grids together: 64 MB of float32, and every offset into them
+# exact in the solver's float32 collider table
+MAX_SDF_VOXELS = 1 << 24
 
 
 # ------------------------------------------------------------------------------------ surface
@@ -255,15 +257,18 @@ class ShotSpec(Strict):
             if b - a < 2 * h:
                 raise ValueError(f"domain: extent along {axis} ({b - a:g} m) must be at least two kernel "
                                  f"radii ({2 * h:g} m)")
+        voxels = 0
         for ci, col in enumerate(self.colliders):
             if col.type == "mesh":
-                self._check_mesh(ci, col)
+                voxels += self._check_mesh(ci, col, voxels)
         keys = [k.frame for k in self.render.camera_keys]
         if keys != sorted(set(keys)):
             raise ValueError(f"render.camera_keys: frames must be strictly increasing, got {keys}")
         return self
 
-    def _check_mesh(self, ci: int, col: MeshCollider) -> None:
+    def _check_mesh(self, ci: int, col: MeshCollider, before: int) -> int:
+        """Mesh collider ci's file and box are sound; returns (an upper bound of) the voxels of
+        its distance grid, which with those of the mesh colliders `before` it must fit."""
         from .meshes import MeshFileError
 
         where = f"colliders[{ci}]"
@@ -274,10 +279,13 @@ class ShotSpec(Strict):
         lo, hi = self.sdf_box(verts, col)
         if np.any(hi <= lo):
             raise ValueError(f"{where}: the mesh lies entirely outside the domain")
-        voxels = math.prod(int(v) for v in np.ceil((hi - lo) / (col.voxel_size * self.sim.particle_radius)) + 1)
-        if voxels > MAX_SDF_VOXELS:
-            raise ValueError(f"{where}.voxel_size: the mesh's distance grid would have {voxels:,} voxels "
-                             f"(at most {MAX_SDF_VOXELS:,}); raise voxel_size or shrink the mesh")
+        # nodes on multiples of the voxel covering [lo, hi]: at most ceil(extent / voxel) + 2 a side
+        voxels = math.prod(int(v) for v in np.ceil((hi - lo) / (col.voxel_size * self.sim.particle_radius)) + 2)
+        if before + voxels > MAX_SDF_VOXELS:
+            raise ValueError(f"{where}.voxel_size: the mesh colliders' distance grids would have "
+                             f"{before + voxels:,} voxels (at most {MAX_SDF_VOXELS:,}); raise voxel_size "
+                             f"or shrink the mesh")
+        return voxels
 
     # ----------------------------------------------------------------- derived, converted once
     def mesh_path(self, ci: int) -> Path:

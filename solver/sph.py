@@ -194,14 +194,18 @@ def collider_clearance(cfg: SolverConfig, points: np.ndarray) -> np.ndarray:
     pos = ti.Vector.ndarray(3, ti.f32, shape=n)
     pos.from_numpy(np.resize(np.asarray(points, np.float32), (n, 3)))
     out = ti.ndarray(ti.f32, shape=n)
-    ctype = ti.ndarray(ti.i32, cfg.colliders_t.shape)
-    ctype.from_numpy(cfg.colliders_t)
-    cprm = ti.ndarray(ti.f32, cfg.colliders_f.shape)
-    cprm.from_numpy(cfg.colliders_f)
-    sdf = ti.ndarray(ti.f32, cfg.collider_sdf.shape)
-    sdf.from_numpy(cfg.collider_sdf)
-    k_clearance(pos, ctype, cprm, sdf, out)
+    k_clearance(pos, *collider_arrays(cfg), out)
     return out.to_numpy()[:len(points)]
+
+
+def collider_arrays(cfg: SolverConfig):
+    """(types, parameter table, distance grids): the colliders as the kernels take them."""
+    out = []
+    for a, dtype in ((cfg.colliders_t, ti.i32), (cfg.colliders_f, ti.f32), (cfg.collider_sdf, ti.f32)):
+        nd = ti.ndarray(dtype, a.shape)
+        nd.from_numpy(a)
+        out.append(nd)
+    return tuple(out)
 
 
 def _hydrostatic(p, lo, hi, up, g, fluid_row, gamma):
@@ -725,12 +729,7 @@ class SPHSolver:
 
         self.ftab = ti.ndarray(ti.f32, cfg.fluid_table.shape)
         self.ftab.from_numpy(cfg.fluid_table)
-        self.ctype = ti.ndarray(ti.i32, cfg.colliders_t.shape)
-        self.ctype.from_numpy(cfg.colliders_t)
-        self.cprm = ti.ndarray(ti.f32, cfg.colliders_f.shape)
-        self.cprm.from_numpy(cfg.colliders_f)
-        self.sdf = ti.ndarray(ti.f32, cfg.collider_sdf.shape)
-        self.sdf.from_numpy(cfg.collider_sdf)
+        self.ctype, self.cprm, self.sdf = collider_arrays(cfg)
         ot, og = K.ghost_tables(cfg.density_kernel, cfg.pressure_kernel, h, cfg.particle_radius)
         self.oct_t = ti.ndarray(ti.f32, ot.shape)
         self.oct_t.from_numpy(ot)

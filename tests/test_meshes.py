@@ -98,7 +98,20 @@ def test_mesh_too_fine_for_its_distance_grid_is_refused(tmp_path, capsys):
     job.write_text(JOB.format(path="cube.obj").replace("scale = 0.1", "scale = 0.9\nvoxel_size = 0.25")
                    .replace("particle_radius = 0.02", "particle_radius = 0.002"))
     assert main(["validate", str(job)]) == 2
-    assert "colliders[0].voxel_size: the mesh's distance grid would have" in capsys.readouterr().err
+    assert "colliders[0].voxel_size: the mesh colliders' distance grids would have" in capsys.readouterr().err
+
+
+def test_mesh_colliders_share_one_distance_grid_budget(tmp_path, capsys):
+    """Each grid fits alone, two do not: offsets into them must stay exact in float32."""
+    write_cube(tmp_path / "cube.obj")
+    job = tmp_path / "job.toml"
+    one = JOB.format(path="cube.obj").replace("scale = 0.1", "scale = 0.17\nvoxel_size = 0.25")
+    job.write_text(one.replace("particle_radius = 0.02", "particle_radius = 0.004"))
+    assert main(["validate", str(job)]) == 0
+    second = one[one.index("[[colliders]]"):]
+    job.write_text(one.replace("particle_radius = 0.02", "particle_radius = 0.004") + second)
+    assert main(["validate", str(job)]) == 2
+    assert "colliders[1].voxel_size: the mesh colliders' distance grids would have" in capsys.readouterr().err
 
 
 def test_editing_the_mesh_file_invalidates_the_sim(tmp_path):

@@ -379,7 +379,6 @@ def test_mesh_collider_distance_matches_the_analytic_sphere(tmp_path):
     # neighbours' closest triangles, not an exact search: measured within 0.1 voxel here
     assert np.abs(err[~near]).max() < tol + 0.15 * voxel, np.abs(err[~near]).max()
     # normals: the gradient of the trilinear field points along the radius
-    from solver.sph import vec3  # noqa: F401  (taichi is initialised by the fixture)
     normals = _collider_normals(cfg, p)
     cosines = (normals * u).sum(1)
     # near the surface within 8 degrees (measured 5: facets and the gradient of a trilinear
@@ -391,7 +390,7 @@ def test_mesh_collider_distance_matches_the_analytic_sphere(tmp_path):
 def _collider_normals(cfg, points):
     import taichi as ti
 
-    from solver.sph import V3, F1, F2, I1, collider_sdf
+    from solver.sph import V3, F1, F2, I1, collider_arrays, collider_sdf
 
     @ti.kernel
     def normals(pos: V3, ctype: I1, cprm: F2, sdf: F1, out: V3):
@@ -399,14 +398,9 @@ def _collider_normals(cfg, points):
             _phi, n = collider_sdf(ctype[0], cprm, sdf, 0, pos[i])
             out[i] = n
 
-    arrays = []
-    for a, dt in ((cfg.colliders_t, ti.i32), (cfg.colliders_f, ti.f32), (cfg.collider_sdf, ti.f32)):
-        nd = ti.ndarray(dt, a.shape)
-        nd.from_numpy(a)
-        arrays.append(nd)
     pos, out = ti.Vector.ndarray(3, ti.f32, len(points)), ti.Vector.ndarray(3, ti.f32, len(points))
     pos.from_numpy(points.astype(np.float32))
-    normals(pos, *arrays, out)
+    normals(pos, *collider_arrays(cfg), out)
     return out.to_numpy()
 
 
