@@ -125,7 +125,7 @@ class FrameRenderer:
             m = read_mesh(path)
             if len(m.faces) == 0:
                 continue
-            poly = pv.PolyData(m.points, np.hstack([np.full((len(m.faces), 1), 3), m.faces]).ravel())
+            poly = pv.PolyData.from_regular_faces(m.points, m.faces)
             poly.point_data["Normals"] = m.normals
             poly.point_data.active_normals_name = "Normals"
             colour = mat.color or (spec.fluids[[f.name for f in spec.fluids].index(key)].color
@@ -168,7 +168,7 @@ def collider_meshes(spec):
             continue      # the inside of a container would hide the fluid
         if col.type == "mesh":
             verts, tris = spec.collider_mesh(ci)
-            m = pv.PolyData(verts, np.hstack([np.full((len(tris), 1), 3), tris]).ravel())
+            m = pv.PolyData.from_regular_faces(verts, tris)
             m = m.compute_normals(auto_orient_normals=True, split_vertices=True, feature_angle=60.0)
         elif col.type == "sphere":
             m = pv.Sphere(radius=col.radius, center=col.center, theta_resolution=48, phi_resolution=48)

@@ -224,7 +224,7 @@ def postprocess(mesh: Mesh, smoothing_iterations: int, decimate: float) -> Mesh:
     import pyvista as pv
     from scipy.spatial import cKDTree
 
-    poly = pv.PolyData(mesh.points, np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).ravel())
+    poly = pv.PolyData.from_regular_faces(mesh.points, mesh.faces)
     if smoothing_iterations:
         poly = poly.smooth_taubin(n_iter=smoothing_iterations, pass_band=0.1)
     if decimate:

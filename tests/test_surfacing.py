@@ -51,7 +51,7 @@ def test_sphere_mesh_is_closed_manifold_with_outward_normals(sphere_mesh):
     import pyvista as pv
 
     _field, mesh, _ = sphere_mesh
-    poly = pv.PolyData(mesh.points, np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).ravel())
+    poly = pv.PolyData.from_regular_faces(mesh.points, mesh.faces)
     assert poly.n_open_edges == 0, "the mesh has boundary edges"
     assert poly.is_manifold
     edges = poly.extract_all_edges()
