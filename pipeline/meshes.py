@@ -75,6 +75,14 @@ def count_open_edges(tris: np.ndarray) -> int:
 
 
 def file_sha256(path: Path) -> str:
+    """sha256 of a file's bytes, read again only when its mtime or size changes (the sim's hash
+    is asked for several times a run)."""
+    st = Path(path).stat()
+    return _sha256(str(path), st.st_mtime_ns, st.st_size)
+
+
+@lru_cache(maxsize=8)
+def _sha256(path: str, _mtime_ns: int, _size: int) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
