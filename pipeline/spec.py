@@ -301,10 +301,15 @@ class ShotSpec(Strict):
         matrix, offset = placement(col.scale, col.rotate, col.translate)
         return verts @ matrix.T + offset, tris
 
+    def sdf_pad(self, col: MeshCollider) -> float:
+        """How far a mesh collider's distance grid reaches beyond the mesh, and is exact inside
+        it: one kernel radius (the reach of the collider's forces) and two voxels."""
+        return self.smoothing_radius + 2 * col.voxel_size * self.sim.particle_radius
+
     def sdf_box(self, verts: np.ndarray, col: MeshCollider) -> tuple[np.ndarray, np.ndarray]:
-        """World box of a mesh collider's distance grid: its bounds plus one kernel radius and two
-        voxels, clipped to the domain grown by as much (nothing beyond can meet a particle)."""
-        pad = self.smoothing_radius + 2 * col.voxel_size * self.sim.particle_radius
+        """World box of a mesh collider's distance grid: its bounds plus sdf_pad, clipped to the
+        domain grown by as much (nothing beyond can meet a particle)."""
+        pad = self.sdf_pad(col)
         lo = np.maximum(verts.min(0) - pad, np.array(self.domain.min) - pad)
         hi = np.minimum(verts.max(0) + pad, np.array(self.domain.max) + pad)
         return lo, hi

@@ -4,8 +4,9 @@ OpenVDB's mesh-to-level-set (the same conversion Houdini's VDB from Polygons use
 distance to the triangles within its narrow band and the sign from a flood fill, so it copes
 with self-intersecting or non-manifold but closed meshes. Distances are exact outside and within
 a voxel of the surface; deeper inside, where OpenVDB grows the band from its neighbours' closest
-triangles, they were measured within 0.1 voxel (tests/test_solver.py, an icosphere). The band is made wide enough to hold
-every point within one kernel radius outside the mesh and as deep inside; deeper voxels keep
+triangles, they were measured within 0.1 voxel (tests/test_solver.py, an icosphere). The band
+is made wide enough to hold every point within one kernel radius outside the mesh and as deep
+inside; deeper voxels keep
 the band's far value, -band, which still pushes a stray particle out along the gradient it has
 near the band's edge. Node (i, j, k) of the returned grid is at origin + voxel * (i, j, k).
 """

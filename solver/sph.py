@@ -147,8 +147,7 @@ def mesh_collider_grid(spec, ci: int):
     col = spec.colliders[ci]
     verts, tris = spec.collider_mesh(ci)
     lo, hi = spec.sdf_box(verts, col)
-    voxel = col.voxel_size * spec.sim.particle_radius
-    return sample_sdf(verts, tris, lo, hi, voxel, depth=spec.smoothing_radius + 2 * voxel)
+    return sample_sdf(verts, tris, lo, hi, col.voxel_size * spec.sim.particle_radius, depth=spec.sdf_pad(col))
 
 
 def fill_blocks(spec, cfg: "SolverConfig | None" = None) -> dict[str, np.ndarray]:
