@@ -60,8 +60,8 @@ CELL_DIV = 2
 # has moved SKIN h / 2 from where they were built. Measured on the 50k dam break (bench/solver.py,
 # 0.5 s): 0.15 rebuilds too often, 0.25 lists too many pairs; 0.2 was fastest.
 SKIN = 0.2
-# A step shorter than this fraction of the acoustic CFL step means the state has blown up (in
-# the example shots the force limit stays above a tenth of it, even at impacts).
+# A step shorter than this fraction of the acoustic CFL step means the state has blown up. The
+# three example shots at their own resolution, all frames, never went below 0.75 of it.
 MIN_DT_FRACTION = 1e-3
 
 
