@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import h5py
+import numpy as np
 import pytest
 
 from conftest import ROOT, small, spec_of, sphshot
@@ -107,6 +108,44 @@ def test_unstable_sim_stops_naming_frame_and_parameter_and_keeps_earlier_frames(
     assert "sim.max_density_ratio" in lines[0] and "raise sim.speed_of_sound" in lines[0]
     spec = spec_of(job, args)
     assert cache.scan(spec, cache.ShotPaths.for_spec(spec), "sim", spec.frames).valid == (1,)
+
+
+@pytest.mark.parametrize("fault, message", [
+    ("nan", "frame 0002: sim unstable: NaN/inf in particle state; lower sim.cfl or sim.max_dt"),
+    ("escape", "frame 0002: sim unstable: 1 particle(s) escaped the domain; lower sim.cfl"),
+])
+def test_corrupt_state_stops_naming_frame_and_keeps_earlier_frames(tmp_path, monkeypatch, capsys, fault, message):
+    """The other two checks on every finished frame. The solver's own clamps keep a healthy run
+    finite and inside the domain, so the fault is injected into the second frame's snapshot; the
+    real sim stage must then refuse to write that frame, keep frame 1, and say why in one line."""
+    from pipeline import cli
+    from solver.sph import SPHSolver
+
+    job = tmp_path / "dambreak.toml"
+    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    args = small()
+    spec = spec_of(job, args)
+    real, calls = SPHSolver.snapshot, []
+
+    def snapshot(self):
+        data = real(self)
+        calls.append(1)
+        if len(calls) == 2:                                  # frame 2 (frame 1 is the fill)
+            if fault == "nan":
+                data["velocity"][7, 1] = float("nan")
+            else:
+                data["position"][7] = np.add(spec.domain.max, [0.0, 0.01, 0.0])
+        return data
+
+    monkeypatch.setattr(SPHSolver, "snapshot", snapshot)
+    code = cli.main(["run", str(job), *args, "--stage", "sim"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("sphshot: error:")]
+    assert code == 1, err
+    assert lines == [f"sphshot: error: {message}"], err
+    paths = cache.ShotPaths.for_spec(spec)
+    assert cache.scan(spec, paths, "sim", spec.frames).valid == (1,)
+    assert not paths.sim_frame(2).exists()
 
 
 def _all_final_files_complete(root: Path) -> int:
