@@ -69,6 +69,13 @@ class Unstable(RuntimeError):
     """The state has blown up mid-frame; the message says how."""
 
 
+MAX_LIST_ENTRIES = 2 ** 31 - 1     # Taichi's ndarray index is int32
+
+
+class TooLarge(RuntimeError):
+    """The neighbour lists would pass MAX_LIST_ENTRIES."""
+
+
 # ===================================================================================== config
 @dataclass(frozen=True)
 class SolverConfig:
@@ -800,8 +807,10 @@ class SPHSolver:
 
     def _grow_neighbours(self, cap: int) -> None:
         cap = -(-cap // 8) * 8
-        if self.n * cap >= 2 ** 31:
-            raise MemoryError(f"neighbour lists of {self.n} particles x {cap} exceed 2^31 entries")
+        if self.n * cap > MAX_LIST_ENTRIES:
+            raise TooLarge(f"{self.n:,} particles with up to {cap} neighbours each need neighbour lists "
+                           f"of {self.n * cap:,} entries, over the limit of {MAX_LIST_ENTRIES:,}; use "
+                           f"fewer particles (a larger sim.particle_radius or smaller fluid blocks)")
         self.nb_cap = cap
         self.nbr = ti.ndarray(ti.i32, max(self.n * cap, 1))     # within h + skin at `ref`
         self.nbn = ti.ndarray(ti.i32, self.n)

@@ -75,11 +75,14 @@ def run(spec, frames, paths, progress) -> None:
         init_taichi(spec.sim.backend, spec.sim.threads)
     except BackendUnavailable as exc:
         raise StageError(str(exc)) from None
-    from .sph import Unstable
+    from .sph import TooLarge, Unstable
 
     todo = sorted(frames)
     last = todo[-1]
-    cfg, solver, ckpt_frame = build_solver(spec, paths, todo[0])
+    try:
+        cfg, solver, ckpt_frame = build_solver(spec, paths, todo[0])
+    except TooLarge as exc:
+        raise StageError(f"sim: {exc}") from None
     start = spec.shot.frame_start if ckpt_frame is None else ckpt_frame
     if ckpt_frame is None:
         data = solver.snapshot()
@@ -99,6 +102,8 @@ def run(spec, frames, paths, progress) -> None:
                 done = solver.advance_to(spec.frame_time(frame), should_stop=lambda: _STOP["signal"] is not None)
             except Unstable as exc:
                 raise StageError(f"frame {frame:04d}: sim unstable: {exc}; lower sim.cfl or sim.max_dt") from None
+            except TooLarge as exc:     # particles crowding together: usually a blow-up too
+                raise StageError(f"frame {frame:04d}: sim: {exc}") from None
             if not done:
                 # checkpoint named after the last finished frame, holding the exact mid-frame state
                 write_checkpoint(paths, frame - 1, solver)

@@ -148,6 +148,25 @@ def test_corrupt_state_stops_naming_frame_and_keeps_earlier_frames(tmp_path, mon
     assert not paths.sim_frame(2).exists()
 
 
+def test_too_many_particles_for_the_neighbour_lists_is_one_error_line(tmp_path, monkeypatch, capsys):
+    """Past 2^31 list entries (about 22M particles at the default smoothing radius) the solver
+    cannot index its neighbour lists; the limit is lowered here so a small shot reaches it."""
+    from pipeline import cli
+    from solver import sph
+
+    job = tmp_path / "dambreak.toml"
+    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    monkeypatch.setattr(sph, "MAX_LIST_ENTRIES", 1000)
+    code = cli.main(["run", str(job), *small(), "--stage", "sim"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("sphshot: error:")]
+    assert code == 1, err
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert "over the limit of 1,000; use fewer particles (a larger sim.particle_radius" in lines[0]
+    spec = spec_of(job, small())
+    assert cache.scan(spec, cache.ShotPaths.for_spec(spec), "sim", spec.frames).valid == ()
+
+
 def _all_final_files_complete(root: Path) -> int:
     """Every file under a final name opens and holds its datasets; returns how many."""
     n = 0
