@@ -170,6 +170,7 @@ MAX_SDF_VOXELS = 1 << 24
 class Surface(Strict):
     cell_size: Annotated[float, Field(gt=0.1, le=4)] = 0.75   # grid spacing, in particle radii
     kernel_radius: Annotated[float, Field(gt=1, le=8)] = 4.0  # splat support, in particle radii
+    kernel: Literal["cubic", "poly6", "wendland"] = "cubic"   # splat kernel
     iso: Annotated[float, Field(gt=0, lt=1)] = 0.5            # colour-field iso value
     format: Literal["ply", "obj", "vtu"] = "ply"
     per_fluid: bool = False               # one mesh per fluid instead of one for all

@@ -112,14 +112,16 @@ def particle_volumes(data: dict, attrs: dict) -> np.ndarray:
     return vol.astype(np.float32)
 
 
-def colour_field(positions, velocities, volumes, cell: float, support: float, iso: float = 0.5) -> Field:
-    """Splat the particles onto the blocks their supports reach (cubic spline kernel). With
+def colour_field(positions, velocities, volumes, cell: float, support: float, iso: float = 0.5,
+                 kernel: str = "cubic") -> Field:
+    """Splat the particles onto the blocks their supports reach (`kernel`: cubic, poly6 or
+    wendland). With
     `velocities`, the velocity field too, on the blocks the `iso` surface crosses and their upper
     neighbours (what the mesh's vertices and a motion-blur band need), from only the particles
     that reach them."""
     from .splat import Splat     # Taichi: imported here so that reading meshes (render) stays light
 
-    sp = Splat(positions, volumes, cell, support)
+    sp = Splat(positions, volumes, cell, support, kernel)
     field = Field(sp.colour(), sp.blocks, sp.lookup, sp.base_block, cell)
     if velocities is not None and field.n_blocks:
         ids, upper = field.crossing_blocks(iso)

@@ -24,7 +24,7 @@ def surface_frame(spec, data: dict, attrs: dict, frame: int):
     cell, support, s = spec.surface_cell, spec.surface_support, spec.surface
 
     def build(mask):
-        field = colour_field(pos[mask], data["velocity"][mask], vol[mask], cell, support, s.iso)
+        field = colour_field(pos[mask], data["velocity"][mask], vol[mask], cell, support, s.iso, s.kernel)
         mesh = postprocess(marching_cubes(field, s.iso), s.smoothing_iterations, s.decimate)
         return field, mesh
 

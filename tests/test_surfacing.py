@@ -81,15 +81,35 @@ def _clump_and_stray(seed=3):
     return p, vel, np.full(len(p), d ** 3, np.float32)
 
 
-def test_sparse_field_is_the_sph_sum_at_every_node():
+@pytest.mark.parametrize("kernel", ["cubic", "poly6", "wendland"])
+def test_kernel_table_is_the_kernel(kernel):
+    """The splat reads W from a table in r^2 with linear interpolation. Against the kernel at
+    200,001 radii: within 5e-6 W(0) (the bound in surfacing.splat.kernel_table is 4.0e-6 W(0)
+    for Wendland's, the largest r^3 term), and exactly 0 from r = h on."""
+    from solver.kernels import w_np
+    from surfacing.splat import KERNELS, kernel_table
+
+    table = kernel_table(KERNELS[kernel], SUPPORT).astype(np.float64)
+    r = np.linspace(0.0, 1.2 * SUPPORT, 200_001)
+    t = np.minimum(r * r / SUPPORT ** 2 * (len(table) - 2), len(table) - 2)
+    e = t.astype(int)
+    got = table[e] + (t - e) * (table[e + 1] - table[e])
+    want = w_np(KERNELS[kernel], r, SUPPORT)
+    assert np.abs(got - want).max() <= 5e-6 * want[0]
+    assert (got[r >= SUPPORT] == 0).all()
+
+
+@pytest.mark.parametrize("kernel", ["cubic", "poly6", "wendland"])
+def test_sparse_field_is_the_sph_sum_at_every_node(kernel):
     """Every node of the blocks' bounding box equals the brute-force sum over all particles
     (nodes of blocks that were not allocated must be zero), and only the blocks near particles
     are allocated."""
-    from solver.kernels import CUBIC, w_np
+    from solver.kernels import w_np
     from surfacing.reconstruct import colour_field
+    from surfacing.splat import KERNELS
 
     pos, vel, vol = _clump_and_stray()
-    field = colour_field(pos, vel, vol, CELL, SUPPORT)
+    field = colour_field(pos, vel, vol, CELL, SUPPORT, kernel=kernel)
     dense, index0 = field.dense()
     expect = np.zeros(dense.shape)             # numpy scatter, in float64, over each support cube
     reach = int(np.ceil(SUPPORT / CELL))
@@ -97,15 +117,16 @@ def test_sparse_field_is_the_sph_sum_at_every_node():
         lo = np.floor(p / CELL).astype(int) - reach
         ax = [np.arange(lo[a], lo[a] + 2 * reach + 2) for a in range(3)]
         node = np.stack(np.meshgrid(*ax, indexing="ij"), -1)
-        wgt = v * w_np(CUBIC, np.linalg.norm(node * CELL - p, axis=-1), SUPPORT)
+        wgt = v * w_np(KERNELS[kernel], np.linalg.norm(node * CELL - p, axis=-1), SUPPORT)
         at = lo - index0
         assert (at >= 0).all() and (at + 2 * reach + 2 <= dense.shape).all(), "support outside the blocks"
         expect[at[0]:at[0] + 2 * reach + 2, at[1]:at[1] + 2 * reach + 2, at[2]:at[2] + 2 * reach + 2] += wgt
-    # float32 sums of ~50 terms of size <= 0.32: round-off well under 1e-5
+    # float32 sums of ~50 terms of size <= 0.32: round-off well under 1e-5; the kernel table
+    # adds at most 5e-6 W(0) V per term (test above), and only the few nearest terms come close
     np.testing.assert_allclose(dense, expect, atol=2e-5)
     box_blocks = np.prod(field.blocks.max(0) - field.blocks.min(0) + 1)
     assert field.n_blocks < box_blocks / 20, f"{field.n_blocks} blocks of a {box_blocks}-block box"
-    again = colour_field(pos, vel, vol, CELL, SUPPORT)
+    again = colour_field(pos, vel, vol, CELL, SUPPORT, kernel=kernel)
     assert np.array_equal(again.colour, field.colour), "the scatter must not depend on thread timing"
 
 
