@@ -115,10 +115,9 @@ def particle_volumes(data: dict, attrs: dict) -> np.ndarray:
 def colour_field(positions, velocities, volumes, cell: float, support: float, iso: float = 0.5,
                  kernel: str = "cubic") -> Field:
     """Splat the particles onto the blocks their supports reach (`kernel`: cubic, poly6 or
-    wendland). With
-    `velocities`, the velocity field too, on the blocks the `iso` surface crosses and their upper
-    neighbours (what the mesh's vertices and a motion-blur band need), from only the particles
-    that reach them."""
+    wendland). With `velocities`, the velocity field too, on the blocks the `iso` surface
+    crosses and their upper neighbours (what the mesh's vertices and a motion-blur band need),
+    from only the particles that reach them."""
     from .splat import Splat     # Taichi: imported here so that reading meshes (render) stays light
 
     sp = Splat(positions, volumes, cell, support, kernel)
@@ -193,7 +192,7 @@ def _weld(verts: np.ndarray, faces: np.ndarray, t: int, tile_blocks: np.ndarray)
     """(g, faces): the vertices of the tiled volume (see marching_cubes) in global node
     coordinates, one per grid edge (the tiles' shared faces gave some edges two), and the faces
     re-indexed, dropping those that welding made degenerate. A function of its own so that its
-    int64 temporaries (about 12 bytes x 3 per vertex each) are freed before the normals."""
+    (V, 3) int64 temporaries (24 bytes a vertex each) are freed before the normals."""
     tile = np.floor(verts / (B + 1)).astype(np.int64)
     g = verts.astype(np.float64)
     g -= tile * (B + 1)

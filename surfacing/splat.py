@@ -26,7 +26,6 @@ from .reconstruct import B, GridTooLarge
 B3 = B * B * B
 MAX_LOOKUP = 1 << 28           # block-index entries (1 GiB of int32); beyond this, refuse
 TABLE_INTERVALS = 8192         # the kernel table: 32 KiB, in L1 cache
-KERNELS = {"cubic": K.CUBIC, "poly6": K.POLY6, "wendland": K.WENDLAND}
 
 vec3 = ti.math.vec3
 V3 = ti.types.ndarray(dtype=vec3, ndim=1)
@@ -169,7 +168,7 @@ class Splat:
                  kernel: str = "cubic"):
         self.lookup, self.base_block, self.blocks, self.origin = allocate(positions, cell, support)
         self.cell, self.support = float(cell), float(support)
-        self.table = kernel_table(KERNELS[kernel], self.support)
+        self.table = kernel_table(K.DENSITY_KERNELS[kernel], self.support)
         # particles into cubes of edge 2h, ordered by phase, cube, then the block each lies in
         g = (positions.astype(np.float64) - self.origin) / cell
         cube = np.floor(g * cell / (2 * support)).astype(np.int64)

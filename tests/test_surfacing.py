@@ -86,8 +86,8 @@ def test_kernel_table_is_the_kernel(kernel):
     """The splat reads W from a table in r^2 with linear interpolation. Against the kernel at
     200,001 radii: within 5e-6 W(0) (the bound in surfacing.splat.kernel_table is 4.0e-6 W(0)
     for Wendland's, the largest r^3 term), and exactly 0 from r = h on."""
-    from solver.kernels import w_np
-    from surfacing.splat import KERNELS, kernel_table
+    from solver.kernels import DENSITY_KERNELS as KERNELS, w_np
+    from surfacing.splat import kernel_table
 
     table = kernel_table(KERNELS[kernel], SUPPORT).astype(np.float64)
     r = np.linspace(0.0, 1.2 * SUPPORT, 200_001)
@@ -104,9 +104,8 @@ def test_sparse_field_is_the_sph_sum_at_every_node(kernel):
     """Every node of the blocks' bounding box equals the brute-force sum over all particles
     (nodes of blocks that were not allocated must be zero), and only the blocks near particles
     are allocated."""
-    from solver.kernels import w_np
+    from solver.kernels import DENSITY_KERNELS as KERNELS, w_np
     from surfacing.reconstruct import colour_field
-    from surfacing.splat import KERNELS
 
     pos, vel, vol = _clump_and_stray()
     field = colour_field(pos, vel, vol, CELL, SUPPORT, kernel=kernel)
