@@ -22,7 +22,7 @@ os.environ.pop("DISPLAY", None)   # every test renders headless, as on a farm no
 
 @pytest.fixture
 def job_copy(tmp_path):
-    """Copy a job file into tmp_path with its output redirected to tmp_path/out."""
+    """Copy a job file from jobs/ into tmp_path (small() points its output at tmp_path/out)."""
     def make(name: str = "dambreak.toml") -> Path:
         dst = tmp_path / name
         text = (ROOT / "jobs" / name).read_text()

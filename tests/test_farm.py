@@ -58,9 +58,8 @@ def test_bad_farm_frame_ranges_name_the_variable(arg, chunk, env, words):
         select_frames(arg, chunk, SHOT, env)
 
 
-def test_bad_farm_variable_through_the_cli_is_one_line_exit_2(tmp_path):
-    job = tmp_path / "dambreak.toml"
-    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+def test_bad_farm_variable_through_the_cli_is_one_line_exit_2(job_copy, tmp_path):
+    job = job_copy()
     proc = sphshot("run", job, *small(), "--stage", "surface", env={"SLURM_ARRAY_TASK_ID": "x"})
     assert proc.returncode == 2
     assert proc.stderr.strip() == "sphshot: error: SLURM_ARRAY_TASK_ID: expected an integer, got 'x'"
@@ -92,9 +91,8 @@ def test_claims_skip_live_owners_and_take_over_dead_ones(tmp_path):
     assert live.exists() and far.exists()
 
 
-def test_second_sim_on_the_same_shot_waits(tmp_path):
-    job = tmp_path / "dambreak.toml"
-    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+def test_second_sim_on_the_same_shot_waits(job_copy):
+    job = job_copy()
     args = small()
     paths = cache.ShotPaths.for_spec(spec_of(job, args))
     claim = paths.claim("sim", None)
@@ -170,11 +168,10 @@ def test_dask_local_cluster_matches_serial(simmed, tmp_path):
     assert b.movie.exists() and b.contact_sheet.exists()
 
 
-def test_dask_streams_and_reports_a_failed_frame_by_number(tmp_path):
+def test_dask_streams_and_reports_a_failed_frame_by_number(job_copy):
     """All stages under Dask: surface/render tasks start behind the sim; a frame whose sim file
     is unreadable fails by number, and every other frame still finishes."""
-    job = tmp_path / "dambreak.toml"
-    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    job = job_copy()
     args = small("shot.frame_end=10")
     spec = spec_of(job, args)
     paths = cache.ShotPaths.for_spec(spec)

@@ -86,19 +86,17 @@ def test_render_key_change_leaves_sim_and_surface_valid(shot, tmp_path):
     assert mtimes(root / "sim") == sim_before and mtimes(root / "surface") == surf_before
 
 
-def test_surface_waits_on_missing_sim_frames(tmp_path):
-    job = tmp_path / "dambreak.toml"
-    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+def test_surface_waits_on_missing_sim_frames(job_copy):
+    job = job_copy()
     proc = sphshot("run", job, *small(), "--stage", "surface", "--frames", "3-4")
     assert proc.returncode == 4, proc.stderr
     assert "waiting on sim frame 3" in proc.stderr
     assert "Traceback" not in proc.stderr
 
 
-def test_unstable_sim_stops_naming_frame_and_parameter_and_keeps_earlier_frames(tmp_path):
+def test_unstable_sim_stops_naming_frame_and_parameter_and_keeps_earlier_frames(job_copy):
     """A speed of sound of 1 m/s lets the collapsing column compress past the density bound."""
-    job = tmp_path / "dambreak.toml"
-    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    job = job_copy()
     args = small("sim.speed_of_sound=1.0")
     proc = sphshot("run", job, *args, "--stage", "sim")
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("sphshot: error:")]
@@ -114,15 +112,14 @@ def test_unstable_sim_stops_naming_frame_and_parameter_and_keeps_earlier_frames(
     ("nan", "frame 0002: sim unstable: NaN/inf in particle state; lower sim.cfl or sim.max_dt"),
     ("escape", "frame 0002: sim unstable: 1 particle(s) escaped the domain; lower sim.cfl"),
 ])
-def test_corrupt_state_stops_naming_frame_and_keeps_earlier_frames(tmp_path, monkeypatch, capsys, fault, message):
+def test_corrupt_state_stops_naming_frame_and_keeps_earlier_frames(job_copy, monkeypatch, capsys, fault, message):
     """The other two checks on every finished frame. The solver's own clamps keep a healthy run
     finite and inside the domain, so the fault is injected into the second frame's snapshot; the
     real sim stage must then refuse to write that frame, keep frame 1, and say why in one line."""
     from pipeline import cli
     from solver.sph import SPHSolver
 
-    job = tmp_path / "dambreak.toml"
-    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    job = job_copy()
     args = small()
     spec = spec_of(job, args)
     real, calls = SPHSolver.snapshot, []
@@ -148,14 +145,13 @@ def test_corrupt_state_stops_naming_frame_and_keeps_earlier_frames(tmp_path, mon
     assert not paths.sim_frame(2).exists()
 
 
-def test_too_many_particles_for_the_neighbour_lists_is_one_error_line(tmp_path, monkeypatch, capsys):
+def test_too_many_particles_for_the_neighbour_lists_is_one_error_line(job_copy, monkeypatch, capsys):
     """Past 2^31 list entries (about 22M particles at the default smoothing radius) the solver
     cannot index its neighbour lists; the limit is lowered here so a small shot reaches it."""
     from pipeline import cli
     from solver import sph
 
-    job = tmp_path / "dambreak.toml"
-    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    job = job_copy()
     monkeypatch.setattr(sph, "MAX_LIST_ENTRIES", 1000)
     code = cli.main(["run", str(job), *small(), "--stage", "sim"])
     err = capsys.readouterr().err

@@ -451,7 +451,7 @@ def test_fill_leaves_colliders_empty(tmp_path):
 
 
 # --------------------------------------------------------------------------- determinism
-def test_stop_and_resume_is_bit_identical_on_one_thread(tmp_path):
+def test_stop_and_resume_is_bit_identical_on_one_thread(job_copy):
     """Frames after a resume from a checkpoint equal those of an uninterrupted run, bit for bit."""
     from pipeline.cache import ShotPaths
     from pipeline.progress import Progress
@@ -459,9 +459,7 @@ def test_stop_and_resume_is_bit_identical_on_one_thread(tmp_path):
     from pipeline.spec import load_spec
     from solver import stage
 
-    from conftest import ROOT
-    job = tmp_path / "dambreak.toml"
-    job.write_text((ROOT / "jobs" / "dambreak.toml").read_text())
+    job = job_copy()
     common = ["sim.particle_radius=0.02", "sim.threads=1", "shot.frame_end=8", "shot.checkpoint_every=3"]
     whole = load_spec(job, common + ['shot.output="a"'])
     split = load_spec(job, common + ['shot.output="b"'])
