@@ -8,7 +8,10 @@ Every measurement runs the real CLI in a fresh copy of the shot, in one session:
 3. surface + render with `--executor dask`, one worker and N workers (a LocalCluster each,
    start-up included): the serial run already uses every core inside a frame (Taichi threads,
    OpenVDB's TBB, llvmpipe), so x1 -> xN shows what fan-out adds per worker;
-4. the whole shot in sequence (serial: sim, then surface, then render) vs streamed
+4. surface + render as one command on the simulated shot (`sphshot run JOB`, the sim frames
+   already valid: a resume), serial vs N workers; one cluster start-up and one set of imports
+   on each side, and Dask runs frame N's render beside frame N+1's surface;
+5. the whole shot in sequence (serial: sim, then surface, then render) vs streamed
    (`--executor dask`: surface/render tasks start behind the sim).
 
 Prints wall seconds and the ratios serial/dask and sequence/streamed.
@@ -73,6 +76,8 @@ def main() -> None:
 
         t_dask1 = fan_out(1)
         t_dask = fan_out(args.workers)
+        t_one_serial = run(fresh("one-serial", base.parent), sets)
+        t_one_dask = run(fresh("one-dask", base.parent), sets, "--executor", "dask", "--workers", str(args.workers))
         seq = fresh("sequence")
         t_seq = run(seq, sets)
         stream = fresh("stream")
@@ -87,6 +92,8 @@ def main() -> None:
     print(f"surface+render  dask x1          {t_dask1:7.1f} s   (one single-threaded worker)")
     print(f"surface+render  dask x{args.workers}          {t_dask:7.1f} s   speed-up x{t_serial / t_dask:.2f}"
           f" over serial (target >= 1.7), x{t_dask1 / t_dask:.2f} over one worker")
+    print(f"surface+render  one command      {t_one_serial:7.1f} s   serial, sim frames cached")
+    print(f"surface+render  one command      {t_one_dask:7.1f} s   dask x{args.workers}, speed-up x{t_one_serial / t_one_dask:.2f}")
     print(f"whole shot      in sequence      {t_seq:7.1f} s")
     print(f"whole shot      streamed (dask)  {t_stream:7.1f} s   speed-up x{t_seq / t_stream:.2f}")
 

@@ -106,6 +106,8 @@ class DaskExecutor:
     def __init__(self, scheduler: str | None = None, workers: int | None = None, retries: int = 2):
         from dask.distributed import Client, LocalCluster
 
+        from .workers import PinToShare, cpu_shares
+
         for name in list(logging.root.manager.loggerDict):   # Dask logs every connection at INFO
             if name.startswith("distributed"):
                 logging.getLogger(name).setLevel(max(logging.WARNING, log.getEffectiveLevel()))
@@ -117,14 +119,16 @@ class DaskExecutor:
             except (OSError, TimeoutError) as exc:
                 raise StageError(f"--scheduler: cannot reach the Dask scheduler at {scheduler} ({exc})") from None
         else:
-            n = workers or os.cpu_count() or 1
-            # One single-threaded process per core; Taichi and Mesa's llvmpipe inside each worker
-            # get one thread too, so n workers use n cores, not n^2.
+            cpus = sorted(os.sched_getaffinity(0))    # the cores this process may use (SLURM, taskset)
+            n = workers or len(cpus)
+            # Processes with one Dask thread each; Taichi, llvmpipe and OpenVDB's TBB inside a
+            # worker use its share of the cores and no more (PinToShare), so n workers use the
+            # cores once, not n times over.
             self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                         dashboard_address=None, scheduler_kwargs={"dashboard": False},
-                                        silence_logs=logging.ERROR,
-                                        env={"SPHSHOT_WORKER_THREADS": "1", "LP_NUM_THREADS": "1"})
+                                        silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
+            self.client.register_plugin(PinToShare(cpu_shares(cpus, n)), name="sphshot-pin")
         log.info("dask: %s, %d worker(s)", scheduler or "local cluster",
                  len(self.client.scheduler_info().get("workers", {})))
 

@@ -70,7 +70,7 @@ class Kernels(Strict):
 
 class Sim(Strict):
     backend: Literal["auto", "cpu", "cuda", "vulkan"] = "auto"
-    threads: Annotated[int, Field(ge=0)] = 0          # CPU threads, 0 = all cores
+    threads: Annotated[int, Field(ge=0)] = 0          # CPU threads, 0 = every allowed core
     particle_radius: Pos = 0.01                      # m; lattice spacing is 2 radii
     kernel_radius: Annotated[float, Field(gt=1, le=8)] = 4.0  # support h, in particle radii
     gravity: Vec3 = (0.0, -9.81, 0.0)                # m/s^2, any constant acceleration

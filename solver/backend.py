@@ -39,9 +39,9 @@ def init_taichi(backend: str = "auto", threads: int = 0) -> str:
     if backend == "auto" and not _gpu_device_present():
         # Mesa's lavapipe is a Vulkan device too, but a software one: slower than Taichi's CPU path
         order = ["cpu"]
-    # SPHSHOT_WORKER_THREADS: set by the Dask executor so that its n worker processes on n
-    # cores take one thread each; a thread count in the job file wins.
-    n_threads = threads or int(os.environ.get("SPHSHOT_WORKER_THREADS", 0)) or os.cpu_count() or 1
+    # By default the cores this process may use: a Dask worker's share (executor.PinToShare), a
+    # SLURM allocation, a taskset. A thread count in the job file wins.
+    n_threads = threads or len(os.sched_getaffinity(0)) or 1
     chosen = None
     for name in order:
         arch = {"cuda": ti.cuda, "vulkan": ti.vulkan, "cpu": ti.cpu}[name]

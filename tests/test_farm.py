@@ -147,6 +147,43 @@ def test_overlapping_render_workers_render_each_frame_once(simmed, tmp_path):
 
 
 # ------------------------------------------------------------------------------------ dask
+@pytest.mark.parametrize("cpus, n, expected", [
+    ([0, 1], 2, [(0,), (1,)]),
+    ([0, 1], 1, [(0, 1)]),
+    (list(range(8)), 3, [(0, 1, 2), (3, 4, 5), (6, 7)]),
+    ([4, 5, 6, 7, 9], 2, [(4, 5, 6), (7, 9)]),          # a SLURM allocation: not from 0, with a gap
+    ([0, 1], 3, [(0,), (1,), (0,)]),                    # more workers than cores: one each, in turn
+])
+def test_cpu_shares_split_the_allowed_cores(cpus, n, expected):
+    from pipeline.workers import cpu_shares
+    assert cpu_shares(cpus, n) == expected
+
+
+def worker_bindings(client) -> dict:
+    """worker name -> (the cores its process may use, its LP_NUM_THREADS)."""
+    names = {addr: w["name"] for addr, w in client.scheduler_info()["workers"].items()}
+    bound = client.run(lambda: (tuple(sorted(os.sched_getaffinity(0))), os.environ.get("LP_NUM_THREADS")))
+    return {int(names[addr]): b for addr, b in bound.items()}
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two cores to leave one out")
+def test_local_cluster_sizes_itself_to_the_allowed_cores():
+    """Inside a SLURM allocation (or under taskset) the process may use fewer cores than the
+    machine has: the default local cluster has one worker per allowed core, not per core."""
+    from pipeline.executor import DaskExecutor
+    allowed = os.sched_getaffinity(0)
+    one = min(allowed)
+    os.sched_setaffinity(0, {one})
+    try:
+        ex = DaskExecutor()
+        try:
+            assert worker_bindings(ex.client) == {0: ((one,), "1")}
+        finally:
+            ex.close()
+    finally:
+        os.sched_setaffinity(0, allowed)
+
+
 def test_dask_local_cluster_matches_serial(simmed, tmp_path):
     serial_job = copy_shot(simmed, tmp_path / "serial")
     dask_job = copy_shot(simmed, tmp_path / "dask")
@@ -248,6 +285,11 @@ def test_dask_task_survives_a_killed_worker(simmed, tmp_path):
         t.join(timeout=300)
         assert killed, "never saw a worker rendering"
         assert not errors, errors
+        # every worker, the restarted one included, is bound to its own share of the cores
+        from pipeline.workers import cpu_shares
+        shares = cpu_shares(sorted(os.sched_getaffinity(0)), 2)
+        assert set(ex.client.run(os.getpid).values()) != set(pids.values()), "no worker was restarted"
+        assert worker_bindings(ex.client) == {i: (shares[i], str(len(shares[i]))) for i in range(2)}
     finally:
         ex.close()
     paths = cache.ShotPaths.for_spec(spec)
