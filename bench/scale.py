@@ -6,8 +6,9 @@ Every measurement runs the real CLI in a fresh copy of the shot, in one session:
 1. the sim once (serial), kept as the input of (2) and (3);
 2. surface + render with the serial executor (`--stage surface`, then `--stage render`);
 3. surface + render with `--executor dask`, one worker and N workers (a LocalCluster each,
-   start-up included): the serial run already uses every core inside a frame (Taichi threads,
-   OpenVDB's TBB, llvmpipe), so x1 -> xN shows what fan-out adds per worker;
+   start-up included; each worker bound to its share of the cores): the serial run already
+   uses every core inside a frame (Taichi threads, OpenVDB's TBB, llvmpipe), so xN over serial
+   is what splitting the cores between frames adds over splitting them inside a frame;
 4. surface + render as one command on the simulated shot (`sphshot run JOB`, the sim frames
    already valid: a resume), serial vs N workers; one cluster start-up and one set of imports
    on each side, and Dask runs frame N's render beside frame N+1's surface;
@@ -89,7 +90,7 @@ def main() -> None:
           f"job {Path(args.job).name}, load {os.getloadavg()[0]:.2f} at the end)")
     print(f"sim alone                        {t_sim:7.1f} s")
     print(f"surface+render  serial           {t_serial:7.1f} s")
-    print(f"surface+render  dask x1          {t_dask1:7.1f} s   (one single-threaded worker)")
+    print(f"surface+render  dask x1          {t_dask1:7.1f} s   (one worker, all cores)")
     print(f"surface+render  dask x{args.workers}          {t_dask:7.1f} s   speed-up x{t_serial / t_dask:.2f}"
           f" over serial (target >= 1.7), x{t_dask1 / t_dask:.2f} over one worker")
     print(f"surface+render  one command      {t_one_serial:7.1f} s   serial, sim frames cached")

@@ -106,6 +106,8 @@ class DaskExecutor:
     def __init__(self, scheduler: str | None = None, workers: int | None = None, retries: int = 2):
         from dask.distributed import Client, LocalCluster
 
+        from solver.backend import allowed_cpus
+
         from .workers import PinToShare, cpu_shares
 
         for name in list(logging.root.manager.loggerDict):   # Dask logs every connection at INFO
@@ -119,7 +121,7 @@ class DaskExecutor:
             except (OSError, TimeoutError) as exc:
                 raise StageError(f"--scheduler: cannot reach the Dask scheduler at {scheduler} ({exc})") from None
         else:
-            cpus = sorted(os.sched_getaffinity(0))    # the cores this process may use (SLURM, taskset)
+            cpus = allowed_cpus()
             n = workers or len(cpus)
             # Processes with one Dask thread each; Taichi, llvmpipe and OpenVDB's TBB inside a
             # worker use its share of the cores and no more (PinToShare), so n workers use the
@@ -128,7 +130,8 @@ class DaskExecutor:
                                         dashboard_address=None, scheduler_kwargs={"dashboard": False},
                                         silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
-            self.client.register_plugin(PinToShare(cpu_shares(cpus, n)), name="sphshot-pin")
+            if hasattr(os, "sched_setaffinity"):
+                self.client.register_plugin(PinToShare(cpu_shares(cpus, n)), name="sphshot-pin")
         log.info("dask: %s, %d worker(s)", scheduler or "local cluster",
                  len(self.client.scheduler_info().get("workers", {})))
 

@@ -21,6 +21,15 @@ def _gpu_device_present() -> bool:
     return bool(glob.glob("/dev/nvidia[0-9]*") or glob.glob("/dev/dri/renderD*"))
 
 
+def allowed_cpus() -> list[int]:
+    """The cores this process may run on: its CPU affinity (a SLURM allocation, a taskset, a
+    Dask worker's share), or every core where the OS has no affinity call (macOS)."""
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except AttributeError:
+        return list(range(os.cpu_count() or 1))
+
+
 def init_taichi(backend: str = "auto", threads: int = 0) -> str:
     """Start Taichi on `backend` (auto: CUDA, then Vulkan, then CPU); returns the arch used.
 
@@ -39,9 +48,9 @@ def init_taichi(backend: str = "auto", threads: int = 0) -> str:
     if backend == "auto" and not _gpu_device_present():
         # Mesa's lavapipe is a Vulkan device too, but a software one: slower than Taichi's CPU path
         order = ["cpu"]
-    # By default the cores this process may use: a Dask worker's share (executor.PinToShare), a
+    # By default the cores this process may use: a Dask worker's share (workers.PinToShare), a
     # SLURM allocation, a taskset. A thread count in the job file wins.
-    n_threads = threads or len(os.sched_getaffinity(0)) or 1
+    n_threads = threads or len(allowed_cpus())
     chosen = None
     for name in order:
         arch = {"cuda": ti.cuda, "vulkan": ti.vulkan, "cpu": ti.cpu}[name]
