@@ -18,6 +18,10 @@ from .particles import read_frame
 
 log = logging.getLogger("sphshot")
 
+# zlib level for every PNG written. Lossless at any level; Pillow's default (6) took 77 ms for a
+# 960x540 frame of the example shot and 3 takes 38 ms for a file 14% larger (1: 31 ms, +24%).
+PNG_LEVEL = 3
+
 
 def _offscreen_env() -> None:
     if not os.environ.get("DISPLAY"):
@@ -191,7 +195,7 @@ def save_png(final: Path, image: np.ndarray) -> Path:
     from PIL import Image
 
     with atomic_path(final) as tmp:
-        Image.fromarray(image).save(tmp, format="PNG")
+        Image.fromarray(image).save(tmp, format="PNG", compress_level=PNG_LEVEL)
     return final
 
 
@@ -206,7 +210,7 @@ def save_depth_png16(final: Path, depth: np.ndarray) -> Path:
         lo, hi = d[finite].min(), d[finite].max()
         out[finite] = np.round((d[finite] - lo) / max(hi - lo, 1e-12) * 65534).astype(np.uint16)
     with atomic_path(final) as tmp:
-        Image.fromarray(out).save(tmp, format="PNG")
+        Image.fromarray(out).save(tmp, format="PNG", compress_level=PNG_LEVEL)
     return final
 
 
@@ -282,5 +286,5 @@ def write_contact_sheet(final: Path, frames: list[tuple[int, Path]], thumb_width
         draw.rectangle((x, y, x + 34, y + 13), fill=(0, 0, 0))
         draw.text((x + 3, y + 1), f"{frame:04d}", fill=(255, 255, 255))
     with atomic_path(final) as tmp:
-        sheet.save(tmp, format="PNG")
+        sheet.save(tmp, format="PNG", compress_level=PNG_LEVEL)
     return final
