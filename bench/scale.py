@@ -19,12 +19,14 @@ Prints wall seconds and the ratios serial/dask and sequence/streamed.
 
     .venv/bin/python bench/scale.py                 # 48 frames of the example, 2 workers
     .venv/bin/python bench/scale.py --frames 12     # quicker
+    .venv/bin/python bench/scale.py --repeat 3      # the one-command pair three times, medians
 """
 from __future__ import annotations
 
 import argparse
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -51,6 +53,8 @@ def main() -> None:
     ap.add_argument("--job", default=str(ROOT / "jobs" / "dambreak.toml"))
     ap.add_argument("--frames", type=int, default=48, help="shot length (frame_end)")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="rounds of the one-command pair (serial, then dask), medians printed")
     args = ap.parse_args()
 
     work = Path(tempfile.mkdtemp(prefix="sphshot-scale-"))
@@ -77,8 +81,13 @@ def main() -> None:
 
         t_dask1 = fan_out(1)
         t_dask = fan_out(args.workers)
-        t_one_serial = run(fresh("one-serial", base.parent), sets)
-        t_one_dask = run(fresh("one-dask", base.parent), sets, "--executor", "dask", "--workers", str(args.workers))
+        ones = []                 # (serial, dask) pairs, interleaved: the host's noise hits both
+        for k in range(args.repeat):
+            ones.append((run(fresh(f"one-serial-{k}", base.parent), sets),
+                         run(fresh(f"one-dask-{k}", base.parent), sets,
+                             "--executor", "dask", "--workers", str(args.workers))))
+        t_one_serial = statistics.median(a for a, _ in ones)
+        t_one_dask = statistics.median(b for _, b in ones)
         seq = fresh("sequence")
         t_seq = run(seq, sets)
         stream = fresh("stream")
@@ -93,7 +102,9 @@ def main() -> None:
     print(f"surface+render  dask x1          {t_dask1:7.1f} s   (one worker, all cores)")
     print(f"surface+render  dask x{args.workers}          {t_dask:7.1f} s   speed-up x{t_serial / t_dask:.2f}"
           f" over serial (target >= 1.7), x{t_dask1 / t_dask:.2f} over one worker")
-    print(f"surface+render  one command      {t_one_serial:7.1f} s   serial, sim frames cached")
+    each = "; ".join(f"{a:.1f}/{b:.1f}" for a, b in ones)
+    print(f"surface+render  one command      {t_one_serial:7.1f} s   serial, sim frames cached"
+          f"{f' (median of {len(ones)}: {each})' if len(ones) > 1 else ''}")
     print(f"surface+render  one command      {t_one_dask:7.1f} s   dask x{args.workers}, speed-up x{t_one_serial / t_one_dask:.2f}")
     print(f"whole shot      in sequence      {t_seq:7.1f} s")
     print(f"whole shot      streamed (dask)  {t_stream:7.1f} s   speed-up x{t_seq / t_stream:.2f}")
