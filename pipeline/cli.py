@@ -59,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "local cluster")
     r.add_argument("--workers", type=_positive, metavar="N",
                    help="with --executor dask and no --scheduler: local worker processes "
-                        "(default: one per core)")
+                        "(default: one per core this process may use, each bound to its share)")
 
     e = sub.add_parser("export", help="write a farm job (SLURM, OpenCue, OpenJD) that runs this shot",
                        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
