@@ -214,11 +214,33 @@ def save_depth_png16(final: Path, depth: np.ndarray) -> Path:
     return final
 
 
+_kept: FrameRenderer | None = None
+
+
+def renderer_for(spec) -> FrameRenderer:
+    """This shot's renderer, kept open in the process between calls. A Dask worker gets one
+    frame a task; with a new window and static scene each time, a 960x540 frame of the example
+    took 0.38 s on one core instead of 0.26 s (the first render in a new window is the slow one)."""
+    global _kept
+    if _kept is not None and _kept.spec != spec:
+        close_renderer()
+    if _kept is None:
+        try:
+            _kept = FrameRenderer(spec)
+        except Exception as exc:  # VTK raises plain RuntimeErrors for missing GL
+            raise StageError(f"render: cannot open an off-screen render window: {exc}") from None
+    return _kept
+
+
+def close_renderer() -> None:
+    global _kept
+    if _kept is not None:
+        _kept.close()
+        _kept = None
+
+
 def run(spec, frames, paths, progress) -> None:
-    try:
-        renderer = FrameRenderer(spec)
-    except Exception as exc:  # VTK raises plain RuntimeErrors for missing GL
-        raise StageError(f"render: cannot open an off-screen render window: {exc}") from None
+    renderer = renderer_for(spec)
     try:
         for frame in frames:
             image = renderer.render(frame, paths)
@@ -226,8 +248,9 @@ def run(spec, frames, paths, progress) -> None:
             if spec.render.depth == "png16":
                 written.append(save_depth_png16(paths.render_depth(frame), renderer.depth()))
             progress.frame_done(frame, written)
-    finally:
-        renderer.close()
+    except BaseException:
+        close_renderer()          # whatever state a failed render left, the next call starts clean
+        raise
 
 
 def finalize(spec, paths, force: bool = False) -> list[Path]:

@@ -118,6 +118,30 @@ def test_particles_golden_coloured_by_speed(tmp_path):
     compare("particles_speed_f2", paths.render_frame(2))
 
 
+def test_kept_renderer_renders_as_a_new_one(tmp_path):
+    """The render stage keeps its renderer open between calls (a Dask worker gets one frame a
+    task). Frame 2 rendered after frames 3 and 1 in the kept renderer is the image a new
+    renderer makes, pixel for pixel; another spec gets a renderer of its own."""
+    from pipeline import render
+
+    spec = scene(tmp_path / "a")
+    paths = synthetic_meshes(spec, [1, 2, 3])
+    render.close_renderer()
+    render.run(spec, [2], paths, quiet())
+    new = np.asarray(Image.open(paths.render_frame(2)))
+    kept = render.renderer_for(spec)
+    for f in (3, 1, 2):
+        render.run(spec, [f], paths, quiet())
+    assert render.renderer_for(spec) is kept
+    np.testing.assert_array_equal(np.asarray(Image.open(paths.render_frame(2))), new)
+
+    other = scene(tmp_path / "b", resolution=(160, 90))
+    other_paths = synthetic_meshes(other, [2])
+    render.run(other, [2], other_paths, quiet())
+    assert render.renderer_for(other) is not kept
+    assert np.asarray(Image.open(other_paths.render_frame(2))).shape == (90, 160, 3)
+
+
 def test_golden_catches_a_moved_camera(tmp_path):
     """The tolerance is tight enough to see a real change (here: the camera 10 cm off)."""
     from pipeline import render
