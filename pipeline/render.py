@@ -1,11 +1,13 @@
 """The render stage: off-screen PyVista images of the surface meshes (or particles).
 
 No display is needed: VTK renders through EGL (Mesa's llvmpipe on a CPU machine, the GPU's EGL
-where there is one) or OSMesa. One plotter serves a whole chunk of frames: static actors
-(ground, colliders, lights) are built once and only the fluid actors change per frame.
+where there is one) or OSMesa. One plotter serves every frame a process renders of a shot,
+across calls (renderer_for): static actors (ground, colliders, lights) are built once and only
+the fluid actors change per frame.
 """
 from __future__ import annotations
 
+import atexit
 import logging
 import os
 from pathlib import Path
@@ -237,6 +239,9 @@ def close_renderer() -> None:
     if _kept is not None:
         _kept.close()
         _kept = None
+
+
+atexit.register(close_renderer)     # the GL context goes before the interpreter tears down
 
 
 def run(spec, frames, paths, progress) -> None:
