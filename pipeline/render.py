@@ -10,6 +10,7 @@ from __future__ import annotations
 import atexit
 import logging
 import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -216,32 +217,35 @@ def save_depth_png16(final: Path, depth: np.ndarray) -> Path:
     return final
 
 
-_kept: FrameRenderer | None = None
+_local = threading.local()      # a renderer per thread: VTK's GL context belongs to the thread that made it
 
 
 def renderer_for(spec) -> FrameRenderer:
-    """This shot's renderer, kept open in the process between calls. A Dask worker gets one
+    """This thread's renderer of the shot, kept open between calls. A Dask worker gets one
     frame a task; with a new window and static scene each time, a 960x540 frame of the example
     took 0.38 s on one core instead of 0.26 s (the first render in a new window is the slow one)."""
-    global _kept
-    if _kept is not None and _kept.spec != spec:
+    kept = getattr(_local, "renderer", None)
+    if kept is not None and kept.spec != spec:
         close_renderer()
-    if _kept is None:
+    if getattr(_local, "renderer", None) is None:
         try:
-            _kept = FrameRenderer(spec)
+            _local.renderer = FrameRenderer(spec)
         except Exception as exc:  # VTK raises plain RuntimeErrors for missing GL
             raise StageError(f"render: cannot open an off-screen render window: {exc}") from None
-    return _kept
+    return _local.renderer
 
 
 def close_renderer() -> None:
-    global _kept
-    if _kept is not None:
-        _kept.close()
-        _kept = None
+    """Close this thread's renderer, if it has one."""
+    kept = getattr(_local, "renderer", None)
+    _local.renderer = None
+    if kept is not None:
+        kept.close()
 
 
-atexit.register(close_renderer)     # the GL context goes before the interpreter tears down
+# the main thread's renderer (serial runs) closes before the interpreter tears VTK down; a Dask
+# worker's task threads leave theirs to the end of the process
+atexit.register(close_renderer)
 
 
 def run(spec, frames, paths, progress) -> None:

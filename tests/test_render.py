@@ -121,7 +121,7 @@ def test_particles_golden_coloured_by_speed(tmp_path):
 def test_kept_renderer_renders_as_a_new_one(tmp_path):
     """The render stage keeps its renderer open between calls (a Dask worker gets one frame a
     task). Frame 2 rendered after frames 3 and 1 in the kept renderer is the image a new
-    renderer makes, pixel for pixel; another spec gets a renderer of its own."""
+    renderer makes, pixel for pixel; another thread and another spec get renderers of their own."""
     from pipeline import render
 
     spec = scene(tmp_path / "a")
@@ -134,6 +134,10 @@ def test_kept_renderer_renders_as_a_new_one(tmp_path):
         render.run(spec, [f], paths, quiet())
     assert render.renderer_for(spec) is kept
     np.testing.assert_array_equal(np.asarray(Image.open(paths.render_frame(2))), new)
+    # a GL context belongs to its thread: a Dask worker with several threads has one renderer each
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(1) as pool:
+        assert pool.submit(lambda: (render.renderer_for(spec), render.close_renderer())[0]).result() is not kept
 
     other = scene(tmp_path / "b", resolution=(160, 90))
     other_paths = synthetic_meshes(other, [2])
