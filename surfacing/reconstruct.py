@@ -130,7 +130,26 @@ def colour_field(positions, velocities, volumes, cell: float, support: float, is
 
 
 def marching_cubes(field: Field, iso: float) -> Mesh:
-    """Marching cubes (scikit-image's Lewiner) over the blocks whose cells cross `iso`.
+    """The `iso` surface of the field as a mesh with vertex normals and velocities."""
+    return _with_normals(*_triangulate(field, iso))
+
+
+def surface_mesh(field: Field, iso: float, smoothing_iterations: int, decimate: float) -> Mesh:
+    """What the surface stage writes: marching cubes, then optional Taubin smoothing and
+    decimation, with the vertex normals computed once, at the end (0.17 s at 500k particles)."""
+    points, faces, velocity = _triangulate(field, iso)
+    if len(faces) and (smoothing_iterations or decimate):
+        points, faces, velocity = _smooth(points, faces, velocity, smoothing_iterations, decimate)
+    return _with_normals(points, faces, velocity)
+
+
+def _with_normals(points: np.ndarray, faces: np.ndarray, velocity: np.ndarray) -> Mesh:
+    return Mesh(points, faces, vertex_normals(points, faces), velocity)
+
+
+def _triangulate(field: Field, iso: float):
+    """(points, faces, velocity) of the `iso` surface: marching cubes (scikit-image's Lewiner)
+    over the blocks whose cells cross `iso`.
 
     Each such block is cut out with its upper neighbours' first node layers (9^3 nodes, its 8^3
     cells); these tiles are laid out side by side in one array, with the cells that would join
@@ -138,11 +157,12 @@ def marching_cubes(field: Field, iso: float) -> Mesh:
     blocks share on their common faces are then welded by the grid edge they lie on."""
     from skimage.measure import marching_cubes as mc
 
+    empty = Mesh.empty()
     if field.n_blocks == 0:
-        return Mesh.empty()
+        return empty.points, empty.faces, empty.velocity
     todo, n = field.crossing_blocks(iso)
     if len(todo) == 0:
-        return Mesh.empty()
+        return empty.points, empty.faces, empty.velocity
 
     # tile the blocks into one array about as deep as it is wide, so that float32 vertex
     # coordinates keep their precision (a 10^5-node-long stack would round them to 1/100 cell)
@@ -173,7 +193,6 @@ def marching_cubes(field: Field, iso: float) -> Mesh:
     faces = np.ascontiguousarray(faces[:, ::-1])   # skimage winds inward for "inside = above iso"
 
     points = g * field.cell
-    normals = vertex_normals(points, faces)
     if field.velocity is None:
         vel = np.zeros_like(points)
     else:
@@ -185,7 +204,7 @@ def marching_cubes(field: Field, iso: float) -> Mesh:
         step = np.zeros_like(base)
         step[rows, axis] = 1
         vel = (1 - frac) * _node_velocity(field, base) + frac * _node_velocity(field, base + step)
-    return Mesh(points.astype(np.float32), faces, normals, vel.astype(np.float32))
+    return points.astype(np.float32), faces, vel.astype(np.float32)
 
 
 def _weld(verts: np.ndarray, faces: np.ndarray, t: int, tile_blocks: np.ndarray):
@@ -238,22 +257,28 @@ def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def postprocess(mesh: Mesh, smoothing_iterations: int, decimate: float) -> Mesh:
-    """Optional Taubin smoothing and decimation (VTK), keeping normals and velocities consistent."""
+    """Optional Taubin smoothing and decimation of a mesh, its normals made anew."""
     if len(mesh.faces) == 0 or (smoothing_iterations == 0 and decimate == 0):
         return mesh
+    return _with_normals(*_smooth(mesh.points, mesh.faces, mesh.velocity, smoothing_iterations, decimate))
+
+
+def _smooth(points: np.ndarray, faces: np.ndarray, velocity: np.ndarray, smoothing_iterations: int,
+            decimate: float):
+    """(points, faces, velocity) after Taubin smoothing and decimation (VTK)."""
     import pyvista as pv
     from scipy.spatial import cKDTree
 
-    poly = pv.PolyData.from_regular_faces(mesh.points, mesh.faces)
+    poly = pv.PolyData.from_regular_faces(points, faces)
     if smoothing_iterations:
         poly = poly.smooth_taubin(n_iter=smoothing_iterations, pass_band=0.1)
     if decimate:
         poly = poly.decimate(decimate)
     pts = np.asarray(poly.points, np.float32)
-    faces = np.asarray(poly.faces).reshape(-1, 4)[:, 1:].astype(np.int32)
+    new_faces = np.asarray(poly.faces).reshape(-1, 4)[:, 1:].astype(np.int32)
     # velocities follow the nearest original vertex (smoothing moves points by well under a cell)
-    _d, idx = cKDTree(mesh.points).query(pts)
-    return Mesh(pts, faces, vertex_normals(pts, faces), mesh.velocity[idx])
+    _d, idx = cKDTree(points).query(pts)
+    return pts, new_faces, velocity[idx]
 
 
 def write_mesh(path, mesh: Mesh, fmt: str) -> None:

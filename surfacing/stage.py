@@ -14,7 +14,7 @@ log = logging.getLogger("sphshot")
 
 def surface_frame(spec, data: dict, attrs: dict, frame: int):
     """Build (field, mesh, {fluid: mesh}) for one frame of particles."""
-    from .reconstruct import Mesh, colour_field, marching_cubes, particle_volumes, postprocess
+    from .reconstruct import Mesh, colour_field, particle_volumes, surface_mesh
 
     pos = data["position"]
     if len(pos) == 0:
@@ -25,7 +25,7 @@ def surface_frame(spec, data: dict, attrs: dict, frame: int):
 
     def build(mask):
         field = colour_field(pos[mask], data["velocity"][mask], vol[mask], cell, support, s.iso, s.kernel)
-        mesh = postprocess(marching_cubes(field, s.iso), s.smoothing_iterations, s.decimate)
+        mesh = surface_mesh(field, s.iso, s.smoothing_iterations, s.decimate)
         return field, mesh
 
     field, mesh = build(np.ones(len(pos), bool))

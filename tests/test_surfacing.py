@@ -290,6 +290,19 @@ def test_mesh_formats_keep_normals(sphere_mesh, tmp_path, fmt, keeps_velocity):
         np.testing.assert_allclose(back.velocity, mesh.velocity, atol=1e-6)
 
 
+@pytest.mark.parametrize("smoothing, decimate", [(0, 0.0), (20, 0.0), (5, 0.5)])
+def test_surface_mesh_is_marching_cubes_then_postprocess(sphere_mesh, smoothing, decimate):
+    """The stage's one call (normals computed once, at the end) makes exactly the mesh of the
+    two steps, each with its own normals."""
+    from surfacing.reconstruct import marching_cubes, postprocess, surface_mesh
+
+    field, _mesh, _r = sphere_mesh
+    want = postprocess(marching_cubes(field, 0.5), smoothing, decimate)
+    got = surface_mesh(field, 0.5, smoothing, decimate)
+    for name in ("points", "faces", "normals", "velocity"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
 def test_taubin_smoothing_keeps_the_sphere(sphere_mesh):
     from surfacing.reconstruct import postprocess
 
