@@ -123,11 +123,13 @@ class ShotPaths:
     mesh_ext: str
     fluids: tuple[str, ...]
     per_fluid: bool
+    vdb: bool = True            # the surface stage writes a .vdb (surface.grids names some grid)
 
     @classmethod
     def for_spec(cls, spec: ShotSpec) -> "ShotPaths":
         return cls(root=spec.output_root, name=spec.shot.name, mesh_ext=spec.surface.format,
-                   fluids=tuple(f.name for f in spec.fluids), per_fluid=spec.surface.per_fluid)
+                   fluids=tuple(f.name for f in spec.fluids), per_fluid=spec.surface.per_fluid,
+                   vdb=bool(spec.surface.grids))
 
     def stage_dir(self, stage: str) -> Path:
         return self.root / stage
@@ -180,7 +182,8 @@ class ShotPaths:
         if stage == "sim":
             return [self.sim_frame(frame)]
         if stage == "surface":
-            return [self.surface_vdb(frame), *self.surface_meshes(frame).values()]
+            vdb = [self.surface_vdb(frame)] if self.vdb else []
+            return vdb + list(self.surface_meshes(frame).values())
         if stage == "render":
             return [self.render_frame(frame)]
         raise KeyError(stage)

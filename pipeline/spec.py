@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .errors import SpecError
 
@@ -177,6 +177,16 @@ class Surface(Strict):
     smoothing_iterations: Annotated[int, Field(ge=0, le=200)] = 0   # Taubin smoothing
     decimate: Annotated[float, Field(ge=0, lt=1)] = 0.0           # fraction of triangles removed
     half_width: Annotated[float, Field(ge=1, le=10)] = 3.0         # level-set narrow band, voxels
+    # OpenVDB grids written per frame; none: no .vdb at all (the level set is most of a frame's time)
+    grids: tuple[Literal["surface", "density", "velocity"], ...] = ("surface", "density", "velocity")
+
+    @field_validator("grids")
+    @classmethod
+    def _grids_once(cls, grids):
+        twice = sorted({g for g in grids if grids.count(g) > 1})
+        if twice:
+            raise ValueError(f"each grid at most once, got {', '.join(map(repr, twice))} twice")
+        return grids
 
 
 # ------------------------------------------------------------------------------------- render

@@ -63,11 +63,13 @@ def _write_frame(spec, frame: int, paths) -> list:
     except GridTooLarge as exc:
         raise StageError(f"frame {frame:04d}: surfacing: {exc}") from None
     written = []
-    grids = vdb.build_grids(field, mesh, frame, float(attrs.get("time", spec.frame_time(frame))),
-                            spec.surface.half_width, extra_surfaces=per_fluid.items())
-    with atomic_path(paths.surface_vdb(frame)) as tmp:
-        vdb.write(tmp, grids)
-    written.append(paths.surface_vdb(frame))
+    if paths.vdb:
+        grids = vdb.build_grids(field, mesh, frame, float(attrs.get("time", spec.frame_time(frame))),
+                                spec.surface.half_width, extra_surfaces=per_fluid.items(),
+                                which=spec.surface.grids)
+        with atomic_path(paths.surface_vdb(frame)) as tmp:
+            vdb.write(tmp, grids)
+        written.append(paths.surface_vdb(frame))
     for key, path in paths.surface_meshes(frame).items():
         with atomic_path(path) as tmp:
             write_mesh(tmp, mesh if key is None else per_fluid[key], spec.surface.format)

@@ -86,6 +86,29 @@ def test_render_key_change_leaves_sim_and_surface_valid(shot, tmp_path):
     assert mtimes(root / "sim") == sim_before and mtimes(root / "surface") == surf_before
 
 
+def test_surface_grids_choose_what_the_vdb_holds(job_copy):
+    """surface.grids names the OpenVDB grids written; with none the stage writes no .vdb at all
+    (only meshes), and its frames are still valid and render."""
+    import pyopenvdb as vdb
+
+    job = job_copy()
+    only_density = small("shot.frame_end=2", 'surface.grids=["density"]')
+    sphshot("run", job, *only_density, "--stage", "sim", check=True)
+    sphshot("run", job, *only_density, "--stage", "surface", check=True)
+    paths = cache.ShotPaths.for_spec(spec_of(job, only_density))
+    assert [g["name"] for g in vdb.readAllGridMetadata(str(paths.surface_vdb(1)))] == ["density"]
+
+    no_vdb = small("shot.frame_end=2", "surface.grids=[]")
+    proc = sphshot("run", job, *no_vdb, "--stage", "surface", "--force", check=True)
+    spec = spec_of(job, no_vdb)
+    paths = cache.ShotPaths.for_spec(spec)
+    assert list(paths.stage_dir("surface").glob("*.vdb")) == [], "a .vdb written (or an old one left)"
+    assert ".vdb" not in proc.stdout
+    assert cache.scan(spec, paths, "surface", spec.frames).valid == (1, 2)
+    sphshot("run", job, *no_vdb, "--stage", "render", check=True)
+    assert all(paths.render_frame(f).exists() for f in spec.frames)
+
+
 def test_surface_waits_on_missing_sim_frames(job_copy):
     job = job_copy()
     proc = sphshot("run", job, *small(), "--stage", "surface", "--frames", "3-4")
