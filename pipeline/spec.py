@@ -425,7 +425,8 @@ def _describe(err: dict) -> str:
         got_s = type(got).__name__
     else:
         got_s = repr(got)
-    return f"{where}: expected {msg.removeprefix('Input should be ').rstrip('.')}, got {got_s}"
+    expected = msg.removeprefix("Input should be ").rstrip(".").replace("a valid tuple", "an array")
+    return f"{where}: expected {expected}, got {got_s}"
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:

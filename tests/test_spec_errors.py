@@ -68,6 +68,8 @@ CORPUS = [
     ("bad-stage", GOOD, ["--stage", "comp"], "argument --stage: invalid choice: 'comp'"),
     ("kernel-too-small", GOOD.replace("particle_radius = 0.02", "particle_radius = 0.02\nkernel_radius = 0.5"), [],
      "sim.kernel_radius: expected greater than 1"),
+    ("vector-as-string", GOOD.replace("particle_radius = 0.02", 'particle_radius = 0.02\ngravity = "down"'), [],
+     "sim.gravity: expected an array, got 'down'"),
     ("unknown-vdb-grid", GOOD, ["--set", 'surface.grids=["surface", "fog"]'],
      "surface.grids[1]: expected 'surface', 'density' or 'velocity', got 'fog'"),
     ("vdb-grid-twice", GOOD, ["--set", 'surface.grids=["density", "density"]'],
