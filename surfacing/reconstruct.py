@@ -148,50 +148,18 @@ def _with_normals(points: np.ndarray, faces: np.ndarray, velocity: np.ndarray) -
 
 
 def _triangulate(field: Field, iso: float):
-    """(points, faces, velocity) of the `iso` surface: marching cubes (scikit-image's Lewiner)
-    over the blocks whose cells cross `iso`.
-
-    Each such block is cut out with its upper neighbours' first node layers (9^3 nodes, its 8^3
-    cells); these tiles are laid out side by side in one array, with the cells that would join
-    two tiles masked off, and triangulated in one call. The vertices that neighbouring
-    blocks share on their common faces are then welded by the grid edge they lie on."""
-    from skimage.measure import marching_cubes as mc
+    """(points, faces, velocity) of the `iso` surface: marching cubes (surfacing/mc.py) over
+    the blocks whose cells cross `iso`, one vertex per crossed grid edge."""
+    from . import mc     # Taichi: imported here so that reading meshes (render) stays light
 
     empty = Mesh.empty()
     if field.n_blocks == 0:
         return empty.points, empty.faces, empty.velocity
-    todo, n = field.crossing_blocks(iso)
+    todo, _upper = field.crossing_blocks(iso)
     if len(todo) == 0:
         return empty.points, empty.faces, empty.velocity
-
-    # tile the blocks into one array about as deep as it is wide, so that float32 vertex
-    # coordinates keep their precision (a 10^5-node-long stack would round them to 1/100 cell)
-    # (the tiles are written straight into the volume through a 6-d view: no second copy)
-    t = int(np.ceil(len(todo) ** (1 / 3)))
-    volume = np.zeros((t * (B + 1),) * 3, np.float32)            # spare tiles: all outside
-    tile_view = volume.reshape(t, B + 1, t, B + 1, t, B + 1).transpose(0, 2, 4, 1, 3, 5)
-    a, b, c = np.unravel_index(np.arange(len(todo)), (t, t, t))
-    C = field.colour
-    tile_view[a, b, c, :B, :B, :B] = C[todo]
-    tile_view[a, b, c, B, :B, :B] = C[n[0], 0]
-    tile_view[a, b, c, :B, B, :B] = C[n[1], :, 0]
-    tile_view[a, b, c, :B, :B, B] = C[n[2], :, :, 0]
-    tile_view[a, b, c, B, B, :B] = C[n[3], 0, 0]
-    tile_view[a, b, c, B, :B, B] = C[n[4], 0, :, 0]
-    tile_view[a, b, c, :B, B, B] = C[n[5], :, 0, 0]
-    tile_view[a, b, c, B, B, B] = C[n[6], 0, 0, 0]
-    del tile_view
-    # no cells between two tiles. scikit-image tests a cell's mask at its far corner (checked
-    # by tests/test_surfacing.py against marching cubes on the dense array)
-    mask = np.ones(volume.shape, bool)
-    mask[::B + 1] = mask[:, ::B + 1] = mask[:, :, ::B + 1] = False
-    verts, faces, _n, _v = mc(volume, level=iso, mask=mask, allow_degenerate=True)
-    del volume, mask
-
-    g, faces = _weld(verts, faces, t, field.blocks[todo])
-    del verts
-    faces = np.ascontiguousarray(faces[:, ::-1])   # skimage winds inward for "inside = above iso"
-
+    g, faces = mc.marching_cubes(field.colour, field.blocks,
+                                 lambda ids, o: field.block_of((field.blocks[ids] + o) * B), todo, iso)
     points = g * field.cell
     if field.velocity is None:
         vel = np.zeros_like(points)
@@ -205,30 +173,6 @@ def _triangulate(field: Field, iso: float):
         step[rows, axis] = 1
         vel = (1 - frac) * _node_velocity(field, base) + frac * _node_velocity(field, base + step)
     return points.astype(np.float32), faces, vel.astype(np.float32)
-
-
-def _weld(verts: np.ndarray, faces: np.ndarray, t: int, tile_blocks: np.ndarray):
-    """(g, faces): the vertices of the tiled volume (see marching_cubes) in global node
-    coordinates, one per grid edge (the tiles' shared faces gave some edges two), and the faces
-    re-indexed, dropping those that welding made degenerate. A function of its own so that its
-    (V, 3) int64 temporaries (24 bytes a vertex each) are freed before the normals."""
-    tile = np.floor(verts / (B + 1)).astype(np.int64)
-    g = verts.astype(np.float64)
-    g -= tile * (B + 1)
-    g += tile_blocks[(tile[:, 0] * t + tile[:, 1]) * t + tile[:, 2]] * B
-    del tile
-    # one vertex per grid edge: the node below it along the axis it lies on, and that axis
-    base = np.floor(g).astype(np.int64)
-    axis = np.argmax(g - base, axis=1)
-    base -= base.min(0)
-    span = base.max(0) + 1
-    key = ((base[:, 0] * span[1] + base[:, 1]) * span[2] + base[:, 2]) * 3 + axis
-    del base, axis
-    _u, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    del _u, key
-    faces = inverse.reshape(-1)[faces].astype(np.int32)
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
-    return g[first], faces
 
 
 def _node_velocity(field: Field, nodes: np.ndarray) -> np.ndarray:

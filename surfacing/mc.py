@@ -1,0 +1,187 @@
+"""Marching cubes over the block-sparse colour field, in Taichi (see surfacing/mc_table.py).
+
+One vertex per grid edge the iso level crosses, owned by the edge's lower node: the vertices
+come out welded (no sort, no hashing), numbered block by block, and the triangles refer to
+them directly. Four passes, each parallel over blocks and serial inside one:
+
+1. count_vertices: per block of the band (the blocks whose cells cross the level and their
+   upper neighbours: every crossed edge's lower node lies in one), the crossed edges each
+   node owns, numbered within the block (node_first);
+2. place_vertices: the vertex on each such edge, by linear interpolation, in global node
+   units (float64, so that a grid far from the origin keeps its precision);
+3. count_triangles / emit_triangles: per block whose cells cross the level, each cell's case
+   and its triangles from the table, vertex ids looked up through the owning node.
+
+Block-level offsets between the passes are numpy prefix sums over a few thousand numbers.
+"""
+import numpy as np
+import taichi as ti
+
+from .mc_table import CORNER, EDGE_AXIS, EDGE_CORNER, table
+from .reconstruct import B
+
+B3 = B * B * B
+F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
+I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
+D2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
+U2 = ti.types.ndarray(dtype=ti.u8, ndim=2)
+
+
+@ti.func
+def _value(colour: ti.template(), nbr: ti.template(), s, x, y, z):
+    """The colour at node (x, y, z), each in 0..8, of block row s of `nbr` (column 0: the block
+    itself; column bx + 2 by + 4 bz: the upper neighbour the node falls in, the zero block if
+    none)."""
+    blk = nbr[s, (x >> 3) + 2 * (y >> 3) + 4 * (z >> 3)]
+    return colour[blk * B3 + ((x & 7) * B + (y & 7)) * B + (z & 7)]
+
+
+@ti.func
+def _edges(colour: ti.template(), nbr: ti.template(), s, n, iso):
+    """The crossed edges of node n of block row s, as bits (1: +x, 2: +y, 4: +z)."""
+    x, y, z = n >> 6, (n >> 3) & 7, n & 7
+    base = nbr[s, 0] * B3
+    inside = colour[base + n] > iso
+    bits = 0
+    # the node one step up each axis: in the block, or at the bottom of the upper neighbour
+    ox = base + n + B * B if x < 7 else nbr[s, 1] * B3 + n - 7 * B * B
+    oy = base + n + B if y < 7 else nbr[s, 2] * B3 + n - 7 * B
+    oz = base + n + 1 if z < 7 else nbr[s, 4] * B3 + n - 7
+    if (colour[ox] > iso) != inside:
+        bits |= 1
+    if (colour[oy] > iso) != inside:
+        bits |= 2
+    if (colour[oz] > iso) != inside:
+        bits |= 4
+    return bits
+
+
+@ti.kernel
+def count_vertices(colour: F1, nbr: I2, iso: ti.f32, edges: U2, node_first: I2, count: I1):
+    """edges[s, n]: node n's crossed edges (bits, see _edges) in band block row s;
+    node_first[s, n]: the crossed edges of the nodes before it; count[s]: all of the row's."""
+    for s in count:
+        c = 0
+        for n in range(B3):
+            bits = _edges(colour, nbr, s, n, iso)
+            edges[s, n] = ti.cast(bits, ti.u8)
+            node_first[s, n] = c
+            c += (bits & 1) + (bits >> 1 & 1) + (bits >> 2)
+        count[s] = c
+
+
+@ti.kernel
+def place_vertices(colour: F1, nbr: I2, blocks: I2, iso: ti.f32, offset: I1, edges: U2,
+                   node_first: I2, g: D2):
+    """g[v]: vertex v in global node coordinates, by linear interpolation along its edge;
+    node_first becomes global (adds offset[s])."""
+    for s in offset:
+        for n in range(B3):
+            v = offset[s] + node_first[s, n]
+            node_first[s, n] = v
+            bits = ti.cast(edges[s, n], ti.i32)
+            if bits:
+                x, y, z = n >> 6, (n >> 3) & 7, n & 7
+                c0 = _value(colour, nbr, s, x, y, z)
+                for a in ti.static(range(3)):
+                    if bits >> a & 1:
+                        c1 = _value(colour, nbr, s, x + int(a == 0), y + int(a == 1), z + int(a == 2))
+                        g[v, 0] = ti.cast(blocks[s, 0] * B + x, ti.f64)
+                        g[v, 1] = ti.cast(blocks[s, 1] * B + y, ti.f64)
+                        g[v, 2] = ti.cast(blocks[s, 2] * B + z, ti.f64)
+                        g[v, a] += ti.cast((iso - c0) / (c1 - c0), ti.f64)
+                        v += 1
+
+
+@ti.func
+def _case(colour: ti.template(), nbr: ti.template(), s, n, iso):
+    """The case (bit v: corner v above iso) of the cell whose lowest corner is node n."""
+    i, j, k = n >> 6, (n >> 3) & 7, n & 7
+    case = 0
+    if i < 7 and j < 7 and k < 7:                       # all eight corners in the block
+        base = nbr[s, 0] * B3 + n
+        for v in ti.static(range(8)):
+            if colour[base + (v & 1) * B * B + (v >> 1 & 1) * B + (v >> 2 & 1)] > iso:
+                case |= 1 << v
+    else:
+        for v in ti.static(range(8)):
+            if _value(colour, nbr, s, i + (v & 1), j + (v >> 1 & 1), k + (v >> 2 & 1)) > iso:
+                case |= 1 << v
+    return case
+
+
+@ti.kernel
+def count_triangles(colour: F1, nbr: I2, iso: ti.f32, tri_count: I1, cases: U2, count: I1):
+    """cases[s, n]: the case of cell n of block row s; count[s]: the row's triangles."""
+    for s in count:
+        c = 0
+        for n in range(B3):
+            case = _case(colour, nbr, s, n, iso)
+            cases[s, n] = ti.cast(case, ti.u8)
+            c += tri_count[case]
+        count[s] = c
+
+
+@ti.kernel
+def emit_triangles(cases: U2, slot: I2, tri_edges: I3, tri_count: I1, edge_corner: I1,
+                   edge_axis: I1, offset: I1, edges: U2, node_first: I2, faces: I2):
+    """faces[offset[s]:]: the triangles of block row s's cells as vertex ids. slot[s, col]: the
+    band row of the block in column col (as nbr). A vertex is node_first[owner row, owner node]
+    plus the owner node's crossed edges along lower axes."""
+    for s in offset:
+        f = offset[s]
+        for n in range(B3):
+            case = ti.cast(cases[s, n], ti.i32)
+            if tri_count[case]:
+                i, j, k = n >> 6, (n >> 3) & 7, n & 7
+                for t in range(tri_count[case]):
+                    for q in ti.static(range(3)):
+                        e = tri_edges[case, t, q]
+                        lo = edge_corner[e]
+                        x, y, z = i + (lo & 1), j + (lo >> 1 & 1), k + (lo >> 2 & 1)
+                        owner = slot[s, (x >> 3) + 2 * (y >> 3) + 4 * (z >> 3)]
+                        m = ((x & 7) * B + (y & 7)) * B + (z & 7)
+                        below = ti.cast(edges[owner, m], ti.i32) & ((1 << edge_axis[e]) - 1)
+                        faces[f, q] = node_first[owner, m] + (below & 1) + (below >> 1)
+                    f += 1
+
+
+def marching_cubes(colour: np.ndarray, blocks: np.ndarray, neighbour, todo: np.ndarray,
+                   iso: float):
+    """(g, faces): the `iso` surface of a block-sparse field as vertices in global node
+    coordinates (float64) and triangles (int32) counter-clockwise seen from the side below
+    `iso` (outward for a fluid whose colour is above it).
+
+    colour: (nb + 1, 8, 8, 8), the last block all zero; blocks: (nb, 3) block coordinates;
+    neighbour(ids, offset): the ids of the blocks at a block offset from blocks `ids` (nb
+    where missing); todo: the blocks that own a cell crossing `iso` (a superset will do)."""
+    nb = len(blocks)
+    tri_edges, tri_count = table()
+    flat = colour.reshape(-1)
+    up = np.stack([todo] + [neighbour(todo, o) for o in CORNER[1:]], 1)     # 8 columns
+    band = np.unique(up[up < nb])
+    band_nbr = np.stack([band] + [neighbour(band, o) for o in CORNER[1:]], 1).astype(np.int32)
+    row = np.full(nb + 1, 0, np.int32)        # the zero block owns no vertex: any row will do
+    row[band] = np.arange(len(band), dtype=np.int32)
+
+    node_first = np.empty((len(band), B3), np.int32)
+    edges = np.empty((len(band), B3), np.uint8)
+    n_vert = np.empty(len(band), np.int32)
+    count_vertices(flat, band_nbr, iso, edges, node_first, n_vert)
+    g = np.empty((int(n_vert.sum()), 3), np.float64)
+    place_vertices(flat, band_nbr, np.ascontiguousarray(blocks[band], np.int32), iso,
+                   _exclusive_sum(n_vert), edges, node_first, g)
+
+    cases = np.empty((len(todo), B3), np.uint8)
+    n_tri = np.empty(len(todo), np.int32)
+    count_triangles(flat, up.astype(np.int32), iso, tri_count, cases, n_tri)
+    faces = np.empty((int(n_tri.sum()), 3), np.int32)
+    emit_triangles(cases, row[up], tri_edges, tri_count, EDGE_CORNER.astype(np.int32),
+                   EDGE_AXIS.astype(np.int32), _exclusive_sum(n_tri), edges, node_first, faces)
+    return g, faces
+
+
+def _exclusive_sum(n: np.ndarray) -> np.ndarray:
+    return (np.cumsum(n, dtype=np.int64) - n).astype(np.int32)
