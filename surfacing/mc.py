@@ -2,15 +2,17 @@
 
 One vertex per grid edge the iso level crosses, owned by the edge's lower node: the vertices
 come out welded (no sort, no hashing), numbered block by block, and the triangles refer to
-them directly. Four passes, each parallel over blocks and serial inside one:
+them directly. Four kernels, each parallel over blocks and serial inside one:
 
 1. count_vertices: per block of the band (the blocks whose cells cross the level and their
-   upper neighbours: every crossed edge's lower node lies in one), the crossed edges each
-   node owns, numbered within the block (node_first);
+   upper neighbours: every crossed edge's lower node lies in one), each node's crossed edges
+   (3 bits) and how many the nodes before it own (node_first);
 2. place_vertices: the vertex on each such edge, by linear interpolation, in global node
    units (float64, so that a grid far from the origin keeps its precision);
-3. count_triangles / emit_triangles: per block whose cells cross the level, each cell's case
-   and its triangles from the table, vertex ids looked up through the owning node.
+3. count_triangles: per block whose cells cross the level, each cell's case and the block's
+   triangle count;
+4. emit_triangles: each cell's triangles from the table, a vertex id being node_first of the
+   edge's owner node plus its crossed edges along lower axes.
 
 Block-level offsets between the passes are numpy prefix sums over a few thousand numbers.
 """

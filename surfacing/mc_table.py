@@ -12,9 +12,10 @@ inside corner. That choice depends only on the face's own four corners, so the t
 sharing a face make the same segments there and the surface has no cracks. Every crossed
 edge lies on two faces, so the segments close into loops; each loop is one polygon, oriented
 so that its normal points from the inside corners to the outside ones and cut into a fan of
-triangles. (Lorensen & Cline 1987, with the face-consistent choice of Nielson & Hamann 1991's
-"separate the inside corners" kind; no interior-ambiguity test, which is not needed for a
-closed, manifold surface.)
+triangles. This is Lorensen & Cline's (1987) marching cubes with a fixed polarity on ambiguous
+faces, not the asymptotic decider (Nielson & Hamann 1991, which looks at the face's saddle
+value): either is crack-free, and the fixed rule needs no values, only signs. Nothing is
+decided inside a cell (no MC33 interior test), which a closed surface does not need.
 """
 from __future__ import annotations
 
