@@ -7,8 +7,8 @@ them directly. Four kernels, each parallel over blocks and serial inside one:
 1. count_vertices: per block of the band (the blocks whose cells cross the level and their
    upper neighbours: every crossed edge's lower node lies in one), each node's crossed edges
    (3 bits) and how many the nodes before it own (node_first);
-2. place_vertices: the vertex on each such edge, by linear interpolation, in global node
-   units (float64, so that a grid far from the origin keeps its precision);
+2. place_vertices: the vertex on each such edge, by linear interpolation, in node units from
+   its block's first node (numpy then adds the block's place, in float64);
 3. count_triangles: per block whose cells cross the level, each cell's case and the block's
    triangle count;
 4. emit_triangles: each cell's triangles from the table, a vertex id being node_first of the
@@ -27,7 +27,7 @@ F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
-D2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
+F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 U2 = ti.types.ndarray(dtype=ti.u8, ndim=2)
 
 
@@ -75,10 +75,10 @@ def count_vertices(colour: F1, nbr: I2, iso: ti.f32, edges: U2, node_first: I2, 
 
 
 @ti.kernel
-def place_vertices(colour: F1, nbr: I2, blocks: I2, iso: ti.f32, offset: I1, edges: U2,
-                   node_first: I2, g: D2):
-    """g[v]: vertex v in global node coordinates, by linear interpolation along its edge;
-    node_first becomes global (adds offset[s])."""
+def place_vertices(colour: F1, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node_first: I2,
+                   local: F2):
+    """local[v]: vertex v in node units from its block's first node (linear interpolation along
+    its edge); node_first becomes global (adds offset[s])."""
     for s in offset:
         for n in range(B3):
             v = offset[s] + node_first[s, n]
@@ -90,10 +90,10 @@ def place_vertices(colour: F1, nbr: I2, blocks: I2, iso: ti.f32, offset: I1, edg
                 for a in ti.static(range(3)):
                     if bits >> a & 1:
                         c1 = _value(colour, nbr, s, x + int(a == 0), y + int(a == 1), z + int(a == 2))
-                        g[v, 0] = ti.cast(blocks[s, 0] * B + x, ti.f64)
-                        g[v, 1] = ti.cast(blocks[s, 1] * B + y, ti.f64)
-                        g[v, 2] = ti.cast(blocks[s, 2] * B + z, ti.f64)
-                        g[v, a] += ti.cast((iso - c0) / (c1 - c0), ti.f64)
+                        local[v, 0] = ti.cast(x, ti.f32)
+                        local[v, 1] = ti.cast(y, ti.f32)
+                        local[v, 2] = ti.cast(z, ti.f32)
+                        local[v, a] += (iso - c0) / (c1 - c0)
                         v += 1
 
 
@@ -172,9 +172,14 @@ def marching_cubes(colour: np.ndarray, blocks: np.ndarray, neighbour, todo: np.n
     edges = np.empty((len(band), B3), np.uint8)
     n_vert = np.empty(len(band), np.int32)
     count_vertices(flat, band_nbr, iso, edges, node_first, n_vert)
-    g = np.empty((int(n_vert.sum()), 3), np.float64)
-    place_vertices(flat, band_nbr, np.ascontiguousarray(blocks[band], np.int32), iso,
-                   _exclusive_sum(n_vert), edges, node_first, g)
+    local = np.empty((int(n_vert.sum()), 3), np.float32)
+    place_vertices(flat, band_nbr, iso, _exclusive_sum(n_vert), edges, node_first, local)
+    # vertices are numbered block by block: add each one's block origin, in float64 (a grid far
+    # from the origin keeps its precision; the kernels need no 64-bit floats, which some
+    # Vulkan devices lack)
+    g = np.repeat(blocks[band] * B, n_vert, axis=0).astype(np.float64)
+    g += local
+    del local
 
     cases = np.empty((len(todo), B3), np.uint8)
     n_tri = np.empty(len(todo), np.int32)
