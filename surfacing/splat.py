@@ -111,9 +111,10 @@ def k_splat(pos: V3, vel: V3, vol: F1, first: I1, last: I1, origin: vec3, cell: 
                                 y = y0 + step * (j - j0)
                                 txy = tx + y * y
                                 base = b * B3 + ((i & 7) * B + (j & 7)) * B - kb * B
+                                z = zk      # a running sum over at most 8 nodes (one block)
                                 for n in range(k, k_end + 1):
-                                    z = zk + step * (n - k)
                                     t = txy + z * z
+                                    z += step
                                     e = ti.min(ti.cast(t, ti.i32), n_tab)   # past the rim: 0
                                     w0 = table[e]
                                     wgt = w0 + (t - e) * (table[e + 1] - w0)
