@@ -12,12 +12,13 @@ no density, so it uses the lattice volume (2r)^3 — the density pass is the sim
 splashsurf computes its own densities (included in its time). splashsurf runs in its own venv
 (its wheel wants NumPy 2; pyopenvdb needs NumPy 1) as a child process; sphshot also runs in a
 child, so both peak memories are per process. Timings are medians of --repeat runs after a
-warm-up. sphshot runs twice: "mesh" makes what splashsurf makes (the mesh, no velocities; the
+warm-up; the two sides alternate for --rounds rounds and the ratio is the median round's.
+sphshot runs twice: "mesh" makes what splashsurf makes (the mesh, no velocities; the
 comparison); "full" makes what the surface stage makes (velocity field and vertex
 velocities too), then times the VDB grids separately.
 
     .venv/bin/python bench/surface.py --sizes 50k          # ~1 min
-    .venv/bin/python bench/surface.py --sizes 50k,500k     # ~5 min
+    .venv/bin/python bench/surface.py --sizes 50k,500k     # ~4 min
 """
 from __future__ import annotations
 
@@ -140,7 +141,8 @@ def run_child(cmd, env=None) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", default="50k,500k")
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=3, help="reconstructions per child process")
+    ap.add_argument("--rounds", type=int, default=3, help="alternating sphshot/splashsurf rounds")
     ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -152,15 +154,26 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="sphshot_surface_bench_"))
     for size in args.sizes.split(","):
         path = particles(size, work)
-        ours = run_child([sys.executable, __file__, "--child", str(path), str(args.repeat), str(work), "mesh"])
+        # the comparison alternates the two sides, round after round, and takes the median of
+        # the rounds' ratios: a host that slows down for a minute slows both sides of a round
+        rounds = []
+        for n in range(args.rounds):
+            ours = run_child([sys.executable, __file__, "--child", str(path), str(args.repeat), str(work), "mesh"])
+            ref = run_child([str(splash_py), "-c", SPLASH_CHILD, str(path), str(args.repeat)])
+            rounds.append((ours, ref))
+            print(f"{size:5s} round {n + 1}: sphshot {ours['mesh_s']} s, splashsurf {ref['mesh_s']} s, "
+                  f"x{ours['mesh_s'] / ref['mesh_s']:.2f}", flush=True)
         full = run_child([sys.executable, __file__, "--child", str(path), str(args.repeat), str(work), "full"])
-        ref = run_child([str(splash_py), "-c", SPLASH_CHILD, str(path), str(args.repeat)])
+        mid = sorted(range(len(rounds)), key=lambda n: rounds[n][0]["mesh_s"] / rounds[n][1]["mesh_s"])
+        ours, ref = rounds[mid[len(mid) // 2]]                       # the median round
         for r in (ours, full, ref):
             print(f"{size:5s} {r['method']:14s} " + " ".join(f"{k}={v}" for k, v in r.items() if k != "method"))
         print(f"RATIO {size}: sphshot mesh time x{ours['mesh_s'] / ref['mesh_s']:.2f} of splashsurf's "
-              f"(>1 is slower), peak memory x{ours['peak_rss_mb'] / ref['peak_rss_mb']:.2f}, "
-              f"triangles x{ours['tris'] / ref['tris']:.2f}; with velocities {full['mesh_s']} s "
-              f"(x{full['mesh_s'] / ref['mesh_s']:.2f}), then VDB writing {full['vdb_s']} s")
+              f"(>1 is slower; the median of {len(rounds)} rounds), peak memory "
+              f"x{ours['peak_rss_mb'] / ref['peak_rss_mb']:.2f}, triangles x{ours['tris'] / ref['tris']:.2f}; "
+              f"with velocities {full['mesh_s']} s (x{full['mesh_s'] / ref['mesh_s']:.2f}), "
+              f"then VDB writing {full['vdb_s']} s")
+
 
 if __name__ == "__main__":
     main()
