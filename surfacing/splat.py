@@ -82,7 +82,6 @@ def k_splat(pos: V3, vel: V3, vol: F1, first: I1, last: I1, origin: vec3, cell: 
     sq = ti.sqrt(per_r2)                                # lengths scaled so that t = |d|^2
     inv = 1.0 / cell
     step = cell * sq
-    ti.loop_config(block_dim=1)                         # cubes differ a lot in particle count
     for c in first:
         for p in range(first[c], last[c]):
             x = pos[p]
