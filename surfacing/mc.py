@@ -150,19 +150,20 @@ def emit_triangles(cases: U2, slot: I2, tri_edges: I3, tri_count: I1, edge_corne
                     f += 1
 
 
-def marching_cubes(colour: np.ndarray, blocks: np.ndarray, neighbour, todo: np.ndarray,
-                   iso: float):
+def marching_cubes(colour: np.ndarray, blocks: np.ndarray, todo: np.ndarray, upper: np.ndarray,
+                   neighbour, iso: float):
     """(g, faces): the `iso` surface of a block-sparse field as vertices in global node
     coordinates (float64) and triangles (int32) counter-clockwise seen from the side below
     `iso` (outward for a fluid whose colour is above it).
 
     colour: (nb + 1, 8, 8, 8), the last block all zero; blocks: (nb, 3) block coordinates;
-    neighbour(ids, offset): the ids of the blocks at a block offset from blocks `ids` (nb
-    where missing); todo: the blocks that own a cell crossing `iso` (a superset will do)."""
+    todo: the blocks that own a cell crossing `iso` (a superset will do); upper: (len(todo), 7)
+    their upper neighbours at block offsets CORNER[1:] (nb where missing); neighbour(ids,
+    offset): the same for any blocks."""
     nb = len(blocks)
     tri_edges, tri_count = table()
     flat = colour.reshape(-1)
-    up = np.stack([todo] + [neighbour(todo, o) for o in CORNER[1:]], 1)     # 8 columns
+    up = np.c_[todo, upper]                                             # 8 columns
     band = np.unique(up[up < nb])
     band_nbr = np.stack([band] + [neighbour(band, o) for o in CORNER[1:]], 1).astype(np.int32)
     row = np.full(nb + 1, 0, np.int32)        # the zero block owns no vertex: any row will do

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .mc_table import CORNER
+
 log = logging.getLogger("sphshot")
 B = 8                   # nodes per block edge of the sparse grid: one OpenVDB leaf node
 
@@ -62,8 +64,8 @@ class Field:
 
     def crossing_blocks(self, iso: float) -> tuple[np.ndarray, np.ndarray]:
         """(ids, upper): the blocks owning a grid cell with corners on both sides of `iso`, and
-        the (7, len(ids)) ids of their upper neighbours, whose first node layers those cells
-        reach (nb where missing)."""
+        the (7, len(ids)) ids of their upper neighbours in _UPPER's order, whose first node
+        layers those cells reach (nb where missing)."""
         nb = self.n_blocks
         flat = self.colour[:nb].reshape(nb, -1)
         above = np.r_[flat.max(1) > iso, False]          # the zero block: all below
@@ -82,8 +84,9 @@ class Field:
         return out, lo * B
 
 
-# the 7 blocks (besides the block itself) whose nodes the cells of a block touch
-_UPPER = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1), (1, 1, 1)]
+# the 7 blocks (besides the block itself) whose nodes the cells of a block touch, at the block
+# offsets of a cell's corners 1 to 7: the columns surfacing/mc.py expects
+_UPPER = [tuple(int(v) for v in c) for c in CORNER[1:]]
 
 
 @dataclass
@@ -155,11 +158,11 @@ def _triangulate(field: Field, iso: float):
     empty = Mesh.empty()
     if field.n_blocks == 0:
         return empty.points, empty.faces, empty.velocity
-    todo, _upper = field.crossing_blocks(iso)
+    todo, upper = field.crossing_blocks(iso)
     if len(todo) == 0:
         return empty.points, empty.faces, empty.velocity
-    g, faces = mc.marching_cubes(field.colour, field.blocks,
-                                 lambda ids, o: field.block_of((field.blocks[ids] + o) * B), todo, iso)
+    g, faces = mc.marching_cubes(field.colour, field.blocks, todo, upper.T,
+                                 lambda ids, o: field.block_of((field.blocks[ids] + o) * B), iso)
     points = g * field.cell
     if field.velocity is None:
         vel = np.zeros_like(points)
