@@ -158,14 +158,14 @@ def marching_cubes(colour: np.ndarray, blocks: np.ndarray, todo: np.ndarray, upp
 
     colour: (nb + 1, 8, 8, 8), the last block all zero; blocks: (nb, 3) block coordinates;
     todo: the blocks that own a cell crossing `iso` (a superset will do); upper: (len(todo), 7)
-    their upper neighbours at block offsets CORNER[1:] (nb where missing); neighbour(ids,
-    offset): the same for any blocks."""
+    their upper neighbours at block offsets CORNER[1:] (nb where missing); neighbour(offset,
+    ids): the same for any blocks (Field.neighbour)."""
     nb = len(blocks)
     tri_edges, tri_count = table()
     flat = colour.reshape(-1)
     up = np.c_[todo, upper]                                             # 8 columns
     band = np.unique(up[up < nb])
-    band_nbr = np.stack([band] + [neighbour(band, o) for o in CORNER[1:]], 1).astype(np.int32)
+    band_nbr = np.stack([band] + [neighbour(o, band) for o in CORNER[1:]], 1).astype(np.int32)
     row = np.full(nb + 1, 0, np.int32)        # the zero block owns no vertex: any row will do
     row[band] = np.arange(len(band), dtype=np.int32)
 

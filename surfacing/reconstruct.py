@@ -49,9 +49,11 @@ class Field:
         slot[self.velocity_ids] = np.arange(len(self.velocity_ids))
         return slot
 
-    def neighbour(self, offset) -> np.ndarray:
-        """Id of each block's neighbour at block offset (dx, dy, dz); nb (the zero block) if none."""
-        return self.block_of((self.blocks + np.asarray(offset)) * B)
+    def neighbour(self, offset, ids=None) -> np.ndarray:
+        """Id of each block's (or of blocks `ids`') neighbour at block offset (dx, dy, dz); nb
+        (the zero block) if none."""
+        blocks = self.blocks if ids is None else self.blocks[ids]
+        return self.block_of((blocks + np.asarray(offset)) * B)
 
     def block_of(self, nodes: np.ndarray) -> np.ndarray:
         """Block id of integer global node indices (N, 3); nb (the zero block) where missing."""
@@ -161,8 +163,7 @@ def _triangulate(field: Field, iso: float):
     todo, upper = field.crossing_blocks(iso)
     if len(todo) == 0:
         return empty.points, empty.faces, empty.velocity
-    g, faces = mc.marching_cubes(field.colour, field.blocks, todo, upper.T,
-                                 lambda ids, o: field.block_of((field.blocks[ids] + o) * B), iso)
+    g, faces = mc.marching_cubes(field.colour, field.blocks, todo, upper.T, field.neighbour, iso)
     points = g * field.cell
     if field.velocity is None:
         vel = np.zeros_like(points)
