@@ -60,6 +60,32 @@ def w_r2(kind: ti.template(), r2: ti.f32, h: ti.f32) -> ti.f32:
     return out
 
 
+def sigma(kind: int, h: float) -> float:
+    """The normalisation of a density kernel: W(r) = sigma * shape(kind, r^2 / h^2)."""
+    return {POLY6: 315.0 / 64.0, CUBIC: 8.0, WENDLAND: 10.5}[kind] / (PI * h ** 3)
+
+
+@ti.func
+def shape(kind: ti.template(), s):
+    """W(r) / sigma of a density kernel at s = r^2 / h^2, 0 from s = 1 on. Branch-free (the
+    pieces of the cubic spline are both computed, then selected), and element by element when
+    s is a vector, so that a loop over a row of grid nodes compiles to SIMD instructions."""
+    out = s * 0.0
+    if ti.static(kind == POLY6):
+        d = ti.max(1.0 - s, 0.0)
+        out = d * d * d
+    elif ti.static(kind == CUBIC):
+        q = ti.sqrt(s)
+        a = ti.max(1.0 - q, 0.0)
+        out = ti.select(q <= 0.5, 6.0 * (q * s - s) + 1.0, 2.0 * a * a * a)
+    elif ti.static(kind == WENDLAND):
+        q = ti.sqrt(s)
+        a = ti.max(1.0 - q, 0.0)
+        a2 = a * a
+        out = a2 * a2 * (1.0 + 4.0 * q)
+    return out
+
+
 @ti.func
 def dw(kind: ti.template(), r: ti.f32, h: ti.f32) -> ti.f32:
     """Radial derivative dW/dr (<= 0); grad W = dW/dr * r_vec / r."""
