@@ -47,8 +47,10 @@ def synthetic_meshes(spec, frames):
     """A sphere of water that moves along x, written where the surface stage would put it."""
     import pyvista as pv
 
+    from solver.backend import init_taichi
     from surfacing.reconstruct import Mesh, vertex_normals, write_mesh
 
+    init_taichi("cpu", 0)             # vertex_normals is a Taichi loop
     paths = ShotPaths.for_spec(spec)
     for f in frames:
         s = pv.Sphere(radius=0.1, center=(0.15 + 0.05 * f, 0.1, 0.2), theta_resolution=40, phi_resolution=40)
