@@ -54,9 +54,11 @@ def _velocity(field, xform):
     grid.vectorType = vdb.VectorType.CONTRAVARIANT_RELATIVE
     grid.transform = xform
     if field is not None and field.velocity is not None:
-        for slot, n in enumerate(field.velocity_ids):
-            vel = np.where((field.colour[n] > FOG_TOLERANCE)[..., None], field.velocity[slot], np.float32(0))
-            grid.copyFromArray(vel, ijk=tuple(int(v) * B for v in field.blocks[n]), tolerance=(0.0, 0.0, 0.0))
+        ids = field.velocity_ids
+        # one numpy pass over the band (not one per block: 20k small calls cost 0.5 s at 500k)
+        vel = np.where((field.colour[ids] > FOG_TOLERANCE)[..., None], field.velocity[:-1], np.float32(0))
+        for slot, b in enumerate(field.blocks[ids] * B):
+            grid.copyFromArray(vel[slot], ijk=tuple(int(v) for v in b), tolerance=(0.0, 0.0, 0.0))
     return grid
 
 
