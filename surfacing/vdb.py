@@ -55,10 +55,14 @@ def _velocity(field, xform):
     grid.transform = xform
     if field is not None and field.velocity is not None:
         ids = field.velocity_ids
-        # one numpy pass over the band (not one per block: 20k small calls cost 0.5 s at 500k)
-        vel = np.where((field.colour[ids] > FOG_TOLERANCE)[..., None], field.velocity[:-1], np.float32(0))
-        for slot, b in enumerate(field.blocks[ids] * B):
-            grid.copyFromArray(vel[slot], ijk=tuple(int(v) for v in b), tolerance=(0.0, 0.0, 0.0))
+        # numpy passes over 1024 blocks at a time: one per block (20k small calls at 500k
+        # particles) cost 0.1 s more, one over the whole band 120 MB more
+        for s0 in range(0, len(ids), 1024):
+            chunk = ids[s0:s0 + 1024]
+            vel = np.where((field.colour[chunk] > FOG_TOLERANCE)[..., None],
+                           field.velocity[s0:s0 + len(chunk)], np.float32(0))
+            for v, b in zip(vel, field.blocks[chunk] * B):
+                grid.copyFromArray(v, ijk=tuple(int(x) for x in b), tolerance=(0.0, 0.0, 0.0))
     return grid
 
 
