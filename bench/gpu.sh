@@ -25,14 +25,14 @@ $PY - <<'PY'
 import time, numpy as np
 from solver.backend import init_taichi
 print("backend", init_taichi("cuda", 0))
-from surfacing.reconstruct import colour_field, marching_cubes
+from surfacing.reconstruct import color_field, marching_cubes
 rng = np.random.default_rng(0)
 for n in (50_000, 500_000):
     side = round(n ** (1 / 3)); ax = np.arange(side) * 0.02
     P = (np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3) + rng.uniform(-0.003, 0.003, (side ** 3, 3))).astype(np.float32)
     vel = np.zeros_like(P); vol = np.full(len(P), 0.02 ** 3, np.float32)
-    marching_cubes(colour_field(P[:2000], vel[:2000], vol[:2000], 0.0075, 0.04), 0.6)   # compile both
-    t = time.perf_counter(); f = colour_field(P, vel, vol, 0.0075, 0.04); t1 = time.perf_counter(); m = marching_cubes(f, 0.6); t2 = time.perf_counter()
+    marching_cubes(color_field(P[:2000], vel[:2000], vol[:2000], 0.0075, 0.04), 0.6)   # compile both
+    t = time.perf_counter(); f = color_field(P, vel, vol, 0.0075, 0.04); t1 = time.perf_counter(); m = marching_cubes(f, 0.6); t2 = time.perf_counter()
     print(f"surface n={len(P)} splat_s={t1 - t:.3f} marching_cubes_s={t2 - t1:.3f} tris={len(m.faces)}")
 PY
 echo "## render: EGL on the GPU"

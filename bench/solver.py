@@ -54,13 +54,15 @@ def child(args) -> None:
     from solver.backend import init_taichi
 
     arch = init_taichi(args.backend, args.threads)
-    from solver.sph import SolverConfig, SPHSolver, fill_blocks
+    from pipeline.stages.sim import fluid_blocks, solver_params
+    from solver.fill import fill_blocks
+    from solver.sph import SPHSolver
     import taichi as ti
 
     spec = scene(args.particles, args.radius)
-    cfg = SolverConfig.from_spec(spec)
+    params = solver_params(spec)
     t0 = time.perf_counter()
-    s = SPHSolver(cfg, fill_blocks(spec, cfg))
+    s = SPHSolver(params, fill_blocks(params, fluid_blocks(spec)))
     s.step()                      # compile and warm up
     ti.sync()
     init = time.perf_counter() - t0
@@ -71,7 +73,7 @@ def child(args) -> None:
     ti.sync()
     wall = time.perf_counter() - t1
     steps = s.steps - steps0
-    pos = s.pos.to_numpy()
+    pos = s.position.to_numpy()
     result = {"solver": f"sphshot-{arch}", "particles": s.n, "steps": steps,
               "sim_time_s": round(s.time - time0, 4), "wall_s": round(wall, 3), "init_s": round(init, 2),
               "ms_per_step": round(1000 * wall / steps, 3),

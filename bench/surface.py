@@ -5,7 +5,7 @@ Particles come from the anchor's generator (../shared/anchors/surface/bench_surf
 dam-break-like jittered lattice with splash droplets, r = 0.01 m, about 50k and 500k particles.
 Both sides use the same particle radius, a kernel support of 4 radii (splashsurf: smoothing
 length 2 radii), cube size 0.75 radii and iso 0.6 (splashsurf's threshold convention; sphshot's
-colour field is normalised the same way, 1 inside the bulk).
+color field is normalised the same way, 1 inside the bulk).
 
 sphshot's surfacer takes each particle's volume from the sim cache (m / rho); these frames have
 no density, so it uses the lattice volume (2r)^3 — the density pass is the sim stage's work.
@@ -56,25 +56,26 @@ def particles(size: str, out: Path) -> Path:
 def child_sphshot(path: str, repeat: int, vdb_dir: str, mode: str) -> None:
     import numpy as np
 
+    from pipeline.formats import write_vdb
     from solver.backend import init_taichi
     init_taichi("cpu", 0)
     from surfacing import vdb
-    from surfacing.reconstruct import colour_field, marching_cubes
+    from surfacing.reconstruct import color_field, marching_cubes
 
     P = np.load(path).astype(np.float32)
     vel = np.random.default_rng(1).normal(size=P.shape).astype(np.float32)
     vol = np.full(len(P), (2 * R) ** 3, np.float32)
     # compile and warm up every Taichi kernel (splat and marching cubes) on a small frame, so
     # that neither the times nor the peak memory include the JIT compiler
-    marching_cubes(colour_field(P[:2000], vel[:2000], vol[:2000], CUBE * R, SUPPORT * R, ISO), ISO)
-    marching_cubes(colour_field(P[:2000], None, vol[:2000], CUBE * R, SUPPORT * R, ISO), ISO)
+    marching_cubes(color_field(P[:2000], vel[:2000], vol[:2000], CUBE * R, SUPPORT * R, ISO), ISO)
+    marching_cubes(color_field(P[:2000], None, vol[:2000], CUBE * R, SUPPORT * R, ISO), ISO)
 
     def timed(v):
         times, field, mesh = [], None, None
         for _ in range(repeat):
             field = mesh = None          # peak memory is that of one reconstruction, not two
             t0 = time.perf_counter()
-            field = colour_field(P, v, vol, CUBE * R, SUPPORT * R, ISO)
+            field = color_field(P, v, vol, CUBE * R, SUPPORT * R, ISO)
             t1 = time.perf_counter()
             mesh = marching_cubes(field, ISO)
             t2 = time.perf_counter()
@@ -87,7 +88,7 @@ def child_sphshot(path: str, repeat: int, vdb_dir: str, mode: str) -> None:
     t_vdb = None
     if mode == "full":
         t0 = time.perf_counter()
-        vdb.write(Path(vdb_dir) / "bench.vdb", vdb.build_grids(field, mesh, 1, 0.0, 3.0))
+        write_vdb(Path(vdb_dir) / "bench.vdb", vdb.build_grids(field, mesh, 1, 0.0, 3.0))
         t_vdb = round(time.perf_counter() - t0, 3)
     f = np.asarray(mesh.faces)
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)

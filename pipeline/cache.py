@@ -13,7 +13,8 @@ This is the only module that knows where files live. Layout of one shot version:
 
 A frame of a stage is *valid* when every file it owns exists under its final name and the
 manifest's hash for the stage equals the hash of the current spec. Files only ever appear
-under a final name by an atomic rename, so existing means complete.
+under a final name by an atomic rename, so existing means complete. What each stage owns and
+hashes is described once, in pipeline/stages (STAGES).
 """
 from __future__ import annotations
 
@@ -27,9 +28,9 @@ from pathlib import Path
 from typing import Iterator
 
 from .spec import ShotSpec
+from .stages import STAGES as _STAGES
 
-STAGES = ("sim", "surface", "render")
-UPSTREAM = {"sim": None, "surface": "sim", "render": "surface"}
+STAGES = tuple(_STAGES)           # stage names in run order
 HOST = socket.gethostname().split(".")[0].replace("-", "_") or "host"
 
 
@@ -104,15 +105,10 @@ def _digest(obj) -> str:
 def stage_hashes(spec: ShotSpec) -> dict[str, str]:
     """Chained parameter hashes: a change upstream changes every hash below it."""
     out: dict[str, str] = {}
-    for stage in STAGES:
-        up = UPSTREAM[stage]
-        out[stage] = _digest({"upstream": out.get(up), "params": spec.hashed_sections(stage),
-                              "format": FORMAT_VERSION[stage]})
+    for stage in _STAGES.values():
+        out[stage.name] = _digest({"upstream": out.get(stage.upstream), "params": stage.hashed(spec),
+                                   "format": stage.format_version})
     return out
-
-
-# Bump when a stage's file format or algorithm changes in a way that invalidates old caches.
-FORMAT_VERSION = {"sim": 2, "surface": 1, "render": 1}
 
 
 # ------------------------------------------------------------------------------------- paths
@@ -179,14 +175,7 @@ class ShotPaths:
 
     def frame_files(self, stage: str, frame: int) -> list[Path]:
         """Every file a stage owns for one frame; the frame is valid when all exist."""
-        if stage == "sim":
-            return [self.sim_frame(frame)]
-        if stage == "surface":
-            vdb = [self.surface_vdb(frame)] if self.vdb else []
-            return vdb + list(self.surface_meshes(frame).values())
-        if stage == "render":
-            return [self.render_frame(frame)]
-        raise KeyError(stage)
+        return _STAGES[stage].frame_files(self, frame)
 
     def checkpoints(self) -> list[int]:
         """Frames that have a published checkpoint, ascending."""
@@ -201,23 +190,8 @@ class ShotPaths:
 def read_manifest(paths: ShotPaths) -> dict:
     try:
         return json.loads(paths.manifest.read_text(encoding="utf-8"))
-    except FileNotFoundError:
+    except (OSError, json.JSONDecodeError):     # none yet, or unreadable: nothing recorded
         return {"stages": {}}
-    except (OSError, json.JSONDecodeError):
-        return {"stages": {}}
-
-
-def record_stage(spec: ShotSpec, paths: ShotPaths, stage: str) -> None:
-    """Write the stage's current hash into the manifest (atomic; idempotent across workers)."""
-    manifest = read_manifest(paths)
-    entry = json.loads(json.dumps({"hash": stage_hashes(spec)[stage], "params": spec.hashed_sections(stage)},
-                                  default=str))
-    if manifest.get("stages", {}).get(stage) == entry:
-        return                     # nothing new: a second run writes nothing
-    manifest.setdefault("stages", {})[stage] = entry
-    manifest["shot"] = spec.shot.name
-    paths.root.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(paths.manifest, json.dumps(manifest, indent=2, sort_keys=True, default=str))
 
 
 @dataclass(frozen=True)
@@ -229,21 +203,48 @@ class StageScan:
     hash_changed: bool          # the manifest holds another hash for this stage
 
 
+class ShotCache:
+    """One run's view of a shot version: the spec's hashes computed once and the manifest read
+    once (and kept up to date by record())."""
+
+    def __init__(self, spec: ShotSpec, paths: ShotPaths | None = None):
+        self.spec = spec
+        self.paths = paths or ShotPaths.for_spec(spec)
+        self.hashes = stage_hashes(spec)
+        self.manifest = read_manifest(self.paths)
+
+    def recorded_hash(self, stage: str) -> str | None:
+        return self.manifest.get("stages", {}).get(stage, {}).get("hash")
+
+    def scan(self, stage: str, frames) -> StageScan:
+        recorded, current = self.recorded_hash(stage), self.hashes[stage]
+        changed = recorded is not None and recorded != current
+        valid, missing, stale = [], [], []
+        for f in frames:
+            if not all(p.exists() for p in self.paths.frame_files(stage, f)):
+                missing.append(f)
+            elif recorded == current:
+                valid.append(f)
+            else:
+                stale.append(f)   # present but the manifest says other params (or says nothing)
+        return StageScan(stage, tuple(valid), tuple(missing), tuple(stale), changed)
+
+    def record(self, stage: str) -> None:
+        """Write the stage's current hash into the manifest (atomic; idempotent across workers)."""
+        entry = json.loads(json.dumps({"hash": self.hashes[stage], "params": _STAGES[stage].hashed(self.spec)},
+                                      default=str))
+        manifest = read_manifest(self.paths)      # another worker may have recorded a stage since
+        if manifest.get("stages", {}).get(stage) != entry:
+            manifest.setdefault("stages", {})[stage] = entry
+            manifest["shot"] = self.spec.shot.name
+            self.paths.root.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(self.paths.manifest, json.dumps(manifest, indent=2, sort_keys=True, default=str))
+        self.manifest = manifest
+
+
 def scan(spec: ShotSpec, paths: ShotPaths, stage: str, frames) -> StageScan:
-    recorded = read_manifest(paths).get("stages", {}).get(stage, {}).get("hash")
-    current = stage_hashes(spec)[stage]
-    changed = recorded is not None and recorded != current
-    valid, missing, stale = [], [], []
-    for f in frames:
-        files = paths.frame_files(stage, f)
-        present = all(p.exists() for p in files)
-        if not present:
-            missing.append(f)
-        elif recorded == current:
-            valid.append(f)
-        else:
-            stale.append(f)   # present but the manifest says other params (or says nothing)
-    return StageScan(stage, tuple(valid), tuple(missing), tuple(stale), changed)
+    """One stage's frames, valid, missing or stale (a one-off ShotCache)."""
+    return ShotCache(spec, paths).scan(stage, frames)
 
 
 def clear_stage(paths: ShotPaths, stage: str) -> None:

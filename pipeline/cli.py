@@ -9,6 +9,7 @@ from pathlib import Path
 
 from . import errors
 from .errors import SphshotError, UsageError
+from .stages import STAGES
 
 EPILOG = f"""\
 exit codes:
@@ -20,7 +21,7 @@ exit codes:
   {errors.EXIT_INTERRUPTED}  interrupted (SIGTERM/SIGUSR1/SIGINT) after a checkpoint; run again to resume
 """
 
-STAGE_CHOICES = ("sim", "surface", "render", "all")
+STAGE_CHOICES = (*STAGES, "all")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -86,7 +87,7 @@ def _positive(text: str) -> int:
 
 
 def _stages(choice: str) -> list[str]:
-    return ["sim", "surface", "render"] if choice == "all" else [choice]
+    return list(STAGES) if choice == "all" else [choice]
 
 
 def cmd_validate(args) -> int:
@@ -103,10 +104,11 @@ def cmd_status(args) -> int:
     from .frames import format_frames
     from .spec import load_spec
     spec = load_spec(args.job, args.overrides)
-    paths = cache.ShotPaths.for_spec(spec)
+    shot = cache.ShotCache(spec)
+    paths = shot.paths
     print(f"{spec.shot.name} v{spec.shot.version:03d}: {paths.root}")
-    for stage in cache.STAGES:
-        sc = cache.scan(spec, paths, stage, spec.frames)
+    for stage in STAGES:
+        sc = shot.scan(stage, spec.frames)
         line = (f"  {stage:8s} valid {len(sc.valid):4d}  missing {len(sc.missing):4d}  "
                 f"stale {len(sc.stale):4d}  {paths.stage_dir(stage)}")
         if sc.missing and sc.valid:

@@ -21,7 +21,7 @@ from .claims import FrameClaims, read_owner, release, try_claim
 from .errors import Busy, Interrupted, SphshotError, StageError
 from .frames import format_frames
 from .progress import Collect, Progress
-from .stages import STAGE_IMPLS
+from .stages import STAGES
 
 log = logging.getLogger("sphshot")
 
@@ -40,7 +40,7 @@ def run_here(stage: str, spec, frames, paths, progress, since: float | None = No
     Per-frame stages skip frames another worker holds and then wait for them (taking over any
     whose worker died); the sequential sim holds one claim on the whole stage.
     """
-    impl = STAGE_IMPLS[stage]
+    impl = STAGES[stage]
     if not impl.per_frame:
         claim = paths.claim(stage, None)
         if not try_claim(claim):
@@ -179,8 +179,8 @@ class DaskExecutor:
                 if fut.done():
                     handle(fut)
 
-        sim = plans[0] if plans and not STAGE_IMPLS[plans[0].name].per_frame else None
-        per_frame = [name for name in order if STAGE_IMPLS[name].per_frame]
+        sim = plans[0] if plans and not STAGES[plans[0].name].per_frame else None
+        per_frame = [name for name in order if STAGES[name].per_frame]
         streamed = set(sim.todo) if sim else set()
         for frame in sorted(set().union(*todo.values()) - streamed):   # inputs already on disk
             submit(frame, per_frame)

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from .cache import write_text_atomic
 from .spec import ShotSpec
+from .stages import STAGES, Stage
 
 SUFFIX = {"slurm": "slurm.sh", "opencue": "cue.xml", "openjd": "openjd.json"}
 
@@ -71,6 +72,21 @@ def slurm_script(spec: ShotSpec, job: Path, overrides: list[str], chunk: int) ->
     def wrap(stage: str, extra: list[str] = ()) -> str:
         return shlex.quote("exec " + shlex.join(cmd + run_args(job, overrides, stage) + list(extra)))
 
+    def submit(stage: Stage) -> str:
+        """One sbatch line: the sequential sim as one task (USR1 before its time limit makes it
+        checkpoint), a per-frame stage as an array of chunks after its upstream."""
+        s = stage.name
+        if stage.per_frame:
+            after = "aftercorr" if STAGES[stage.upstream].per_frame else "afterok"
+            opts = (f'--output="$LOGS/%x.%A_%a.log" \\\n    --array={a}-{b}:{chunk} '
+                    f'--dependency={after}:${stage.upstream} --wrap={wrap(s, ["--chunk", str(chunk)])}')
+        else:
+            opts = (f'--output="$LOGS/%x.%j.log" \\\n    --signal=B:USR1@120 '
+                    f'${{SPHSHOT_SBATCH_SIM:-}} --wrap={wrap(s)}')
+        return f'{s}=$("$SBATCH" "${{common[@]}}" --job-name={name}.{s} {opts})\n{s}=${{{s}%%;*}}\n'
+
+    submissions = "\n".join(submit(stage) for stage in STAGES.values())
+
     return f"""#!/usr/bin/env bash
 # SLURM submission for sphshot shot {spec.shot.name} v{spec.shot.version:03d}, frames {a}-{b}
 # (written by `sphshot export --to slurm --chunk {chunk}`). Run it with bash where sbatch works.
@@ -87,19 +103,8 @@ LOGS={shlex.quote(str(logs))}
 mkdir -p "$LOGS"
 common=(--parsable ${{SPHSHOT_SBATCH:-}})
 
-sim=$("$SBATCH" "${{common[@]}}" --job-name={name}.sim --output="$LOGS/%x.%j.log" \\
-    --signal=B:USR1@120 ${{SPHSHOT_SBATCH_SIM:-}} --wrap={wrap("sim")})
-sim=${{sim%%;*}}
-
-surface=$("$SBATCH" "${{common[@]}}" --job-name={name}.surface --output="$LOGS/%x.%A_%a.log" \\
-    --array={a}-{b}:{chunk} --dependency=afterok:$sim --wrap={wrap("surface", ["--chunk", str(chunk)])})
-surface=${{surface%%;*}}
-
-render=$("$SBATCH" "${{common[@]}}" --job-name={name}.render --output="$LOGS/%x.%A_%a.log" \\
-    --array={a}-{b}:{chunk} --dependency=aftercorr:$surface --wrap={wrap("render", ["--chunk", str(chunk)])})
-render=${{render%%;*}}
-
-echo "sphshot: submitted {name}: sim $sim, surface $surface, render $render"
+{submissions}
+echo "sphshot: submitted {name}: {", ".join(f"{s} ${s}" for s in STAGES)}"
 """
 
 
@@ -124,15 +129,19 @@ def opencue_xml(spec: ShotSpec, job: Path, overrides: list[str], chunk: int) -> 
         services = ET.SubElement(el, "services")
         ET.SubElement(services, "service").text = "shell"
 
-    # the sim is one frame of its layer running the whole shot
-    layer("sim", str(a), 1, [])
     chunked = ["--frames", "#FRAME_START#-#FRAME_END#"]
-    layer("surface", f"{a}-{b}", chunk, chunked)
-    layer("render", f"{a}-{b}", chunk, chunked)
+    for stage in STAGES.values():
+        if stage.per_frame:
+            layer(stage.name, f"{a}-{b}", chunk, chunked)
+        else:   # the sim is one frame of its layer running the whole shot
+            layer(stage.name, str(a), 1, [])
     depends = ET.SubElement(root, "depends")
-    for kind, dep, on in (("LAYER_ON_LAYER", "surface", "sim"), ("FRAME_BY_FRAME", "render", "surface")):
+    for stage in STAGES.values():
+        if stage.upstream is None:
+            continue
+        kind = "FRAME_BY_FRAME" if STAGES[stage.upstream].per_frame else "LAYER_ON_LAYER"
         d = ET.SubElement(depends, "depend", type=kind, anyframe="False")
-        for tag, text in (("depjob", name), ("deplayer", dep), ("onjob", name), ("onlayer", on)):
+        for tag, text in (("depjob", name), ("deplayer", stage.name), ("onjob", name), ("onlayer", stage.upstream)):
             ET.SubElement(d, tag).text = text
     ET.indent(root)
     return ('<?xml version="1.0"?>\n'
@@ -152,15 +161,19 @@ def openjd_template(spec: ShotSpec, job: Path, overrides: list[str], chunk: int)
 
     frame_param = {"taskParameterDefinitions": [{"name": "Frame", "type": "INT", "range": f"{a}-{b}:{chunk}"}]}
     chunked = ["--frames", "{{Task.Param.Frame}}", "--chunk", str(chunk)]
+
+    def step(stage: Stage) -> dict:
+        out: dict = {"name": stage.name}
+        if stage.upstream:
+            out["dependencies"] = [{"dependsOn": stage.upstream}]
+        if stage.per_frame:
+            out["parameterSpace"] = frame_param
+        out["script"] = {"actions": action(stage.name, chunked if stage.per_frame else [])}
+        return out
+
     template = {
         "specificationVersion": "jobtemplate-2023-09",
         "name": f"sphshot {spec.shot.name} v{spec.shot.version:03d}",
-        "steps": [
-            {"name": "sim", "script": {"actions": action("sim", [])}},
-            {"name": "surface", "dependencies": [{"dependsOn": "sim"}], "parameterSpace": frame_param,
-             "script": {"actions": action("surface", chunked)}},
-            {"name": "render", "dependencies": [{"dependsOn": "surface"}], "parameterSpace": frame_param,
-             "script": {"actions": action("render", chunked)}},
-        ],
+        "steps": [step(stage) for stage in STAGES.values()],
     }
     return json.dumps(template, indent=2) + "\n"

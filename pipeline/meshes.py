@@ -10,7 +10,6 @@ import contextlib
 import hashlib
 import io
 import math
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -22,18 +21,11 @@ class MeshFileError(ValueError):
 
 def read_closed_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(vertices (n, 3) float64, triangles (m, 3) int64) of a closed surface mesh, read-only."""
-    path = Path(path)
-    try:
-        st = path.stat()
-    except OSError:
-        raise MeshFileError(f"mesh file {str(path)!r} not found") from None
-    return _read(str(path), st.st_mtime_ns, st.st_size)
-
-
-@lru_cache(maxsize=8)
-def _read(path: str, _mtime_ns: int, _size: int) -> tuple[np.ndarray, np.ndarray]:
     import meshio
 
+    if not Path(path).is_file():
+        raise MeshFileError(f"mesh file {str(path)!r} not found")
+    path = str(path)
     chatter = io.StringIO()
     try:
         # meshio prints its readers' complaints and ends a failed read with sys.exit(1)
@@ -75,14 +67,7 @@ def count_open_edges(tris: np.ndarray) -> int:
 
 
 def file_sha256(path: Path) -> str:
-    """sha256 of a file's bytes, read again only when its mtime or size changes (the sim's hash
-    is asked for several times a run)."""
-    st = Path(path).stat()
-    return _sha256(str(path), st.st_mtime_ns, st.st_size)
-
-
-@lru_cache(maxsize=8)
-def _sha256(path: str, _mtime_ns: int, _size: int) -> str:
+    """sha256 of a file's bytes."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):

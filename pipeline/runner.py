@@ -5,13 +5,13 @@ from __future__ import annotations
 import time
 
 from . import cache, claims
-from .cache import ShotPaths
+from .cache import ShotCache, ShotPaths
 from .errors import StageError, StaleCacheError, WaitingOnUpstream
 from .executor import SerialExecutor, StagePlan
 from .frames import format_frames
 from .progress import Progress
 from .spec import ShotSpec
-from .stages import STAGE_IMPLS
+from .stages import STAGES
 
 
 def plan_stage(sc: cache.StageScan, paths: ShotPaths, frames: list[int], force: bool) -> list[int]:
@@ -27,11 +27,11 @@ def plan_stage(sc: cache.StageScan, paths: ShotPaths, frames: list[int], force: 
     return list(sc.missing)
 
 
-def check_upstream(spec: ShotSpec, paths: ShotPaths, stage: str, frames: list[int]) -> None:
-    up = cache.UPSTREAM[stage]
+def check_upstream(shot: ShotCache, stage: str, frames: list[int]) -> None:
+    up = STAGES[stage].upstream
     if up is None or not frames:
         return
-    sc = cache.scan(spec, paths, up, frames)
+    sc = shot.scan(up, frames)
     if sc.stale:
         raise StaleCacheError(
             f"{stage}: {up} frame(s) {format_frames(sc.stale)} were made with other parameters; "
@@ -42,25 +42,25 @@ def check_upstream(spec: ShotSpec, paths: ShotPaths, stage: str, frames: list[in
             f"missing: {format_frames(sc.missing)}); run --stage {up} first")
 
 
-def plan_run(spec: ShotSpec, paths: ShotPaths, stages: list[str], frames: list[int],
-             force: bool) -> list[StagePlan]:
+def plan_run(shot: ShotCache, stages: list[str], frames: list[int], force: bool) -> list[StagePlan]:
     """Scan and plan every stage before any work starts, so a stale cache refuses up front.
 
     Only the first stage's upstream must already be on disk: the frames of later stages'
     upstreams are either valid or computed earlier in this same run.
     """
+    paths = shot.paths
     plans = []
     for i, stage in enumerate(stages):
         for folder in (paths.stage_dir(stage), paths.checkpoint_dir, paths.root):
             cache.remove_dead_temporaries(folder)
         claims.remove_dead_claims(paths.stage_dir(stage))
-        sc = cache.scan(spec, paths, stage, frames)
+        sc = shot.scan(stage, frames)
         todo = plan_stage(sc, paths, frames, force)
         if i == 0:
-            check_upstream(spec, paths, stage, todo)
+            check_upstream(shot, stage, todo)
         if force and (sc.hash_changed or sc.stale):
             cache.clear_stage(paths, stage)
-        cache.record_stage(spec, paths, stage)
+        shot.record(stage)
         plans.append(StagePlan(stage, tuple(todo)))
     return plans
 
@@ -69,23 +69,23 @@ def run_stages(spec: ShotSpec, stages: list[str], frames: list[int], *, force: b
                executor=None, progress: Progress | None = None) -> None:
     executor = executor or SerialExecutor()
     progress = progress or Progress()
-    paths = ShotPaths.for_spec(spec)
-    plans = plan_run(spec, paths, stages, frames, force)
+    shot = ShotCache(spec)
+    plans = plan_run(shot, stages, frames, force)
     for plan in plans:
         if not plan.todo:
             progress.line(f"sphshot: {plan.name}: all {len(frames)} frame(s) valid, nothing to do")
     since = time.time() if force else None     # with --force only files newer than this count
     progress.begin({p.name: len(p.todo) for p in plans})
     try:
-        executor.run(spec, paths, plans, progress, since)
+        executor.run(spec, shot.paths, plans, progress, since)
     finally:
         progress.end()
     for plan in plans:
-        impl = STAGE_IMPLS[plan.name]
-        after = cache.scan(spec, paths, plan.name, frames)
+        stage = STAGES[plan.name]
+        after = shot.scan(plan.name, frames)
         if after.missing or after.stale:
             bad = after.missing + after.stale
             raise StageError(f"{plan.name}: frame(s) {format_frames(bad)} not valid on disk after the run")
-        if impl.finalize is not None and not cache.scan(spec, paths, plan.name, spec.frames).missing:
-            for path in impl.finalize(spec, paths, force=force or bool(plan.todo)):
+        if stage.finalize is not None and not shot.scan(plan.name, spec.frames).missing:
+            for path in stage.finalize(spec, shot.paths, force=force or bool(plan.todo)):
                 progress.file_written(path)

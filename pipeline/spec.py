@@ -16,12 +16,12 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from .errors import SpecError
 
 Vec3 = tuple[float, float, float]
-Colour = tuple[
+Color = tuple[
     Annotated[float, Field(ge=0, le=1)],
     Annotated[float, Field(ge=0, le=1)],
     Annotated[float, Field(ge=0, le=1)],
@@ -112,7 +112,7 @@ class Fluid(Strict):
     rest_density: Pos = 1000.0        # kg/m^3
     viscosity: NonNeg = 1.0           # Pa s, Müller's particle-scale viscosity
     surface_tension: NonNeg = 0.0     # N/m
-    color: Colour = (0.25, 0.5, 0.85)
+    color: Color = (0.25, 0.5, 0.85)
     blocks: Annotated[tuple[Block, ...], Field(min_length=1)]
 
 
@@ -120,7 +120,7 @@ class Collider(Strict):
     restitution: Unit = 0.0
     friction: Unit = 0.2
     mode: Literal["obstacle", "container"] = "obstacle"
-    color: Colour = (0.6, 0.6, 0.6)
+    color: Color = (0.6, 0.6, 0.6)
 
 
 class SphereCollider(Collider):
@@ -171,7 +171,7 @@ class Surface(Strict):
     cell_size: Annotated[float, Field(gt=0.1, le=4)] = 0.75   # grid spacing, in particle radii
     kernel_radius: Annotated[float, Field(gt=1, le=8)] = 4.0  # splat support, in particle radii
     kernel: Literal["cubic", "poly6", "wendland"] = "cubic"   # splat kernel
-    iso: Annotated[float, Field(gt=0, lt=1)] = 0.5            # colour-field iso value
+    iso: Annotated[float, Field(gt=0, lt=1)] = 0.5            # color-field iso value
     format: Literal["ply", "obj", "vtu"] = "ply"
     per_fluid: bool = False               # one mesh per fluid instead of one for all
     smoothing_iterations: Annotated[int, Field(ge=0, le=200)] = 0   # Taubin smoothing
@@ -204,11 +204,11 @@ class CameraKey(Camera):
 class Light(Strict):
     position: Vec3
     intensity: Annotated[float, Field(ge=0)] = 1.0
-    color: Colour = (1.0, 1.0, 1.0)
+    color: Color = (1.0, 1.0, 1.0)
 
 
 class Material(Strict):
-    color: Colour | None = None    # None: each fluid's own colour
+    color: Color | None = None    # None: each fluid's own color
     roughness: Unit = 0.15
     metallic: Unit = 0.0
     opacity: Unit = 1.0
@@ -222,8 +222,8 @@ class Render(Strict):
     camera_keys: tuple[CameraKey, ...] = ()     # optional keyframes, linearly interpolated
     lights: tuple[Light, ...] = ()              # empty: a default three-point rig
     material: Material = Material()
-    background: Colour = (0.08, 0.09, 0.11)
-    background_top: Colour | None = (0.32, 0.36, 0.42)   # None: flat background
+    background: Color = (0.08, 0.09, 0.11)
+    background_top: Color | None = (0.32, 0.36, 0.42)   # None: flat background
     ground: bool = True
     domain: bool = True                         # draw the domain box as a thin outline
     colliders: bool = True
@@ -244,6 +244,8 @@ class ShotSpec(Strict):
     render: Render = Render()
     # Filled in by load_spec, not by users: where the job file lives, for relative paths.
     job_dir: str = "."
+    # Resolved at validation: each mesh collider's (world vertices, triangles, file sha256)
+    _meshes: dict = PrivateAttr(default_factory=dict)
 
     @model_validator(mode="after")
     def _cross_checks(self):
@@ -282,16 +284,23 @@ class ShotSpec(Strict):
         its distance grid, which with those of the mesh colliders `before` it must fit."""
         from .meshes import MeshFileError
 
+        from .meshes import file_sha256, placement, read_closed_mesh
+
         where = f"colliders[{ci}]"
         try:
-            verts, _tris = self.collider_mesh(ci)
+            verts, tris = read_closed_mesh(self.mesh_path(ci))
+            sha = file_sha256(self.mesh_path(ci))
         except MeshFileError as exc:
             raise ValueError(f"{where}.path: {exc}") from None
+        matrix, offset = placement(col.scale, col.rotate, col.translate)
+        verts = verts @ matrix.T + offset
+        verts.flags.writeable = False
+        self._meshes[ci] = (verts, tris, sha)   # the spec is a value: the file is read once
         lo, hi = self.sdf_box(verts, col)
         if np.any(hi <= lo):
             raise ValueError(f"{where}: the mesh lies entirely outside the domain")
         # nodes on multiples of the voxel covering [lo, hi]: at most ceil(extent / voxel) + 2 a side
-        voxels = math.prod(int(v) for v in np.ceil((hi - lo) / (col.voxel_size * self.sim.particle_radius)) + 2)
+        voxels = math.prod(int(v) for v in np.ceil((hi - lo) / self.collider_voxel_m(col)) + 2)
         if before + voxels > MAX_SDF_VOXELS:
             raise ValueError(f"{where}.voxel_size: the mesh colliders' distance grids would have "
                              f"{before + voxels:,} voxels (at most {MAX_SDF_VOXELS:,}); raise voxel_size "
@@ -304,18 +313,14 @@ class ShotSpec(Strict):
         return path if path.is_absolute() else Path(self.job_dir) / path
 
     def collider_mesh(self, ci: int) -> tuple[np.ndarray, np.ndarray]:
-        """(vertices in world space, triangles) of mesh collider ci."""
-        from .meshes import placement, read_closed_mesh
-
-        col = self.colliders[ci]
-        verts, tris = read_closed_mesh(self.mesh_path(ci))
-        matrix, offset = placement(col.scale, col.rotate, col.translate)
-        return verts @ matrix.T + offset, tris
+        """(vertices in world space, triangles) of mesh collider ci, as read at validation."""
+        verts, tris, _sha = self._meshes[ci]
+        return verts, tris
 
     def sdf_pad(self, col: MeshCollider) -> float:
         """How far a mesh collider's distance grid reaches beyond the mesh, and is exact inside
         it: one kernel radius (the reach of the collider's forces) and two voxels."""
-        return self.smoothing_radius + 2 * col.voxel_size * self.sim.particle_radius
+        return self.kernel_radius_m + 2 * col.voxel_size * self.sim.particle_radius
 
     def sdf_box(self, verts: np.ndarray, col: MeshCollider) -> tuple[np.ndarray, np.ndarray]:
         """World box of a mesh collider's distance grid: its bounds plus sdf_pad, clipped to the
@@ -342,39 +347,30 @@ class ShotSpec(Strict):
         """Simulated time (s) of a frame; frame_start is t = 0."""
         return (frame - self.shot.frame_start) / self.shot.fps
 
+    # Lengths the job file gives in particle radii, in metres: the one place they are converted.
     @property
-    def smoothing_radius(self) -> float:
-        """Solver kernel support h in metres."""
+    def kernel_radius_m(self) -> float:
+        """The solver's kernel support h (sim.kernel_radius particle radii)."""
         return self.sim.kernel_radius * self.sim.particle_radius
 
     @property
-    def surface_cell(self) -> float:
+    def surface_cell_m(self) -> float:
+        """The surfacing grid's node spacing (surface.cell_size particle radii)."""
         return self.surface.cell_size * self.sim.particle_radius
 
     @property
-    def surface_support(self) -> float:
+    def surface_kernel_radius_m(self) -> float:
+        """The surfacing splat kernel's support (surface.kernel_radius particle radii)."""
         return self.surface.kernel_radius * self.sim.particle_radius
 
-    def hashed_sections(self, stage: str) -> dict[str, Any]:
-        """The spec keys a stage's output depends on (its own; upstream ones chain in the cache)."""
-        if stage == "sim":
-            return {"shot": {"frame_start": self.shot.frame_start, "fps": self.shot.fps},
-                    "sim": self.sim.model_dump(exclude={"backend", "threads"}),
-                    "domain": self.domain.model_dump(),
-                    "fluids": [f.model_dump() for f in self.fluids],
-                    "colliders": [c.model_dump() for c in self.colliders],
-                    "meshes": self.mesh_hashes()}
-        if stage == "surface":
-            return {"surface": self.surface.model_dump()}
-        if stage == "render":
-            return {"render": self.render.model_dump()}
-        raise KeyError(stage)
+    def collider_voxel_m(self, col: MeshCollider) -> float:
+        """A mesh collider's distance-grid voxel (voxel_size particle radii)."""
+        return col.voxel_size * self.sim.particle_radius
 
     def mesh_hashes(self) -> dict[int, str]:
-        """sha256 of each mesh collider's file: editing the mesh invalidates the sim."""
-        from .meshes import file_sha256
-
-        return {ci: file_sha256(self.mesh_path(ci)) for ci, c in enumerate(self.colliders) if c.type == "mesh"}
+        """sha256 of each mesh collider's file (read at validation): editing the mesh invalidates
+        the sim."""
+        return {ci: sha for ci, (_v, _t, sha) in sorted(self._meshes.items())}
 
     def expected_max_speed(self) -> float:
         """sqrt(2 g H) over the tallest fluid column, plus the fastest initial block speed."""

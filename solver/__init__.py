@@ -1,1 +1,2 @@
-"""Taichi SPH solver (Müller, Charypar & Gross 2003, weakly compressible with Tait's equation)."""
+"""SPH solver library: plain parameters in (solver.params), arrays out, typed errors
+(solver.errors). It knows nothing of job files, caches or the command line."""

@@ -7,13 +7,15 @@ import io
 import logging
 import os
 
+from .errors import SolverError
+
 log = logging.getLogger("sphshot")
 _current: tuple | None = None
 _arch_name: str | None = None
 
 
-class BackendUnavailable(RuntimeError):
-    pass
+class BackendUnavailable(SolverError):
+    """The asked-for Taichi backend cannot start on this machine."""
 
 
 def _gpu_device_present() -> bool:

@@ -1,7 +1,7 @@
 """SPH smoothing kernels in 3D, all with compact support radius h (W = 0 for r >= h).
 
 Müller, Charypar & Gross 2003, "Particle-Based Fluid Simulation for Interactive Applications":
-  poly6      W = 315 / (64 pi h^9) (h^2 - r^2)^3                       (density, colour field)
+  poly6      W = 315 / (64 pi h^9) (h^2 - r^2)^3                       (density, color field)
   spiky      W = 15 / (pi h^6) (h - r)^3, grad W = -45/(pi h^6)(h - r)^2 r_hat   (pressure)
   viscosity  W = 15/(2 pi h^3)(-r^3/(2h^3) + r^2/h^2 + h/(2r) - 1), lap W = 45/(pi h^6)(h - r)
 Monaghan 1992 cubic spline, written with support h (q = r/h, sigma = 8 / (pi h^3)), and
@@ -127,7 +127,7 @@ def lap_viscosity(r: ti.f32, h: ti.f32) -> ti.f32:
 
 @ti.func
 def lap_poly6(r: ti.f32, h: ti.f32) -> ti.f32:
-    """Laplacian of poly6, -945/(32 pi h^9) (h^2 - r^2)(3h^2 - 7r^2); used for colour-field curvature."""
+    """Laplacian of poly6, -945/(32 pi h^9) (h^2 - r^2)(3h^2 - 7r^2); used for color-field curvature."""
     out = 0.0
     if r < h:
         d = h * h - r * r

@@ -1,4 +1,4 @@
-"""Marching cubes over the block-sparse colour field, in Taichi (see surfacing/mc_table.py).
+"""Marching cubes over the block-sparse color field, in Taichi (see surfacing/mc_table.py).
 
 One vertex per grid edge the iso level crosses, owned by the edge's lower node: the vertices
 come out welded (no sort, no hashing), numbered block by block, and the triangles refer to
@@ -22,7 +22,7 @@ import numpy as np
 import taichi as ti
 
 from .mc_table import CORNER, EDGE_AXIS, EDGE_CORNER, table
-from .reconstruct import B
+from .grid import B
 
 B3 = B * B * B
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -36,42 +36,42 @@ T3 = ti.types.ndarray(dtype=ti.types.vector(3, ti.i32), ndim=1)
 
 
 @ti.func
-def _value(colour: ti.template(), nbr: ti.template(), s, x, y, z):
-    """The colour at node (x, y, z), each in 0..8, of block row s of `nbr` (column 0: the block
+def _value(color: ti.template(), nbr: ti.template(), s, x, y, z):
+    """The color at node (x, y, z), each in 0..8, of block row s of `nbr` (column 0: the block
     itself; column bx + 2 by + 4 bz: the upper neighbour the node falls in, the zero block if
     none)."""
     blk = nbr[s, (x >> 3) + 2 * (y >> 3) + 4 * (z >> 3)]
-    return colour[blk * B3 + ((x & 7) * B + (y & 7)) * B + (z & 7)]
+    return color[blk * B3 + ((x & 7) * B + (y & 7)) * B + (z & 7)]
 
 
 @ti.func
-def _edges(colour: ti.template(), nbr: ti.template(), s, n, iso):
+def _edges(color: ti.template(), nbr: ti.template(), s, n, iso):
     """The crossed edges of node n of block row s, as bits (1: +x, 2: +y, 4: +z)."""
     x, y, z = n >> 6, (n >> 3) & 7, n & 7
     base = nbr[s, 0] * B3
-    inside = colour[base + n] > iso
+    inside = color[base + n] > iso
     bits = 0
     # the node one step up each axis: in the block, or at the bottom of the upper neighbour
     ox = base + n + B * B if x < 7 else nbr[s, 1] * B3 + n - 7 * B * B
     oy = base + n + B if y < 7 else nbr[s, 2] * B3 + n - 7 * B
     oz = base + n + 1 if z < 7 else nbr[s, 4] * B3 + n - 7
-    if (colour[ox] > iso) != inside:
+    if (color[ox] > iso) != inside:
         bits |= 1
-    if (colour[oy] > iso) != inside:
+    if (color[oy] > iso) != inside:
         bits |= 2
-    if (colour[oz] > iso) != inside:
+    if (color[oz] > iso) != inside:
         bits |= 4
     return bits
 
 
 @ti.kernel
-def count_vertices(colour: F1, nbr: I2, iso: ti.f32, edges: U2, node_first: I2, count: I1):
+def count_vertices(color: F1, nbr: I2, iso: ti.f32, edges: U2, node_first: I2, count: I1):
     """edges[s, n]: node n's crossed edges (bits, see _edges) in band block row s;
     node_first[s, n]: the crossed edges of the nodes before it; count[s]: all of the row's."""
     for s in count:
         c = 0
         for n in range(B3):
-            bits = _edges(colour, nbr, s, n, iso)
+            bits = _edges(color, nbr, s, n, iso)
             edges[s, n] = ti.cast(bits, ti.u8)
             node_first[s, n] = c
             c += (bits & 1) + (bits >> 1 & 1) + (bits >> 2)
@@ -79,7 +79,7 @@ def count_vertices(colour: F1, nbr: I2, iso: ti.f32, edges: U2, node_first: I2, 
 
 
 @ti.kernel
-def place_vertices(colour: F1, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node_first: I2,
+def place_vertices(color: F1, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node_first: I2,
                    local: F2):
     """local[v]: vertex v in node units from its block's first node (linear interpolation along
     its edge); node_first becomes global (adds offset[s])."""
@@ -90,10 +90,10 @@ def place_vertices(colour: F1, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node
             bits = ti.cast(edges[s, n], ti.i32)
             if bits:
                 x, y, z = n >> 6, (n >> 3) & 7, n & 7
-                c0 = _value(colour, nbr, s, x, y, z)
+                c0 = _value(color, nbr, s, x, y, z)
                 for a in ti.static(range(3)):
                     if bits >> a & 1:
-                        c1 = _value(colour, nbr, s, x + int(a == 0), y + int(a == 1), z + int(a == 2))
+                        c1 = _value(color, nbr, s, x + int(a == 0), y + int(a == 1), z + int(a == 2))
                         local[v, 0] = ti.cast(x, ti.f32)
                         local[v, 1] = ti.cast(y, ti.f32)
                         local[v, 2] = ti.cast(z, ti.f32)
@@ -102,29 +102,29 @@ def place_vertices(colour: F1, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node
 
 
 @ti.func
-def _case(colour: ti.template(), nbr: ti.template(), s, n, iso):
+def _case(color: ti.template(), nbr: ti.template(), s, n, iso):
     """The case (bit v: corner v above iso) of the cell whose lowest corner is node n."""
     i, j, k = n >> 6, (n >> 3) & 7, n & 7
     case = 0
     if i < 7 and j < 7 and k < 7:                       # all eight corners in the block
         base = nbr[s, 0] * B3 + n
         for v in ti.static(range(8)):
-            if colour[base + (v & 1) * B * B + (v >> 1 & 1) * B + (v >> 2 & 1)] > iso:
+            if color[base + (v & 1) * B * B + (v >> 1 & 1) * B + (v >> 2 & 1)] > iso:
                 case |= 1 << v
     else:
         for v in ti.static(range(8)):
-            if _value(colour, nbr, s, i + (v & 1), j + (v >> 1 & 1), k + (v >> 2 & 1)) > iso:
+            if _value(color, nbr, s, i + (v & 1), j + (v >> 1 & 1), k + (v >> 2 & 1)) > iso:
                 case |= 1 << v
     return case
 
 
 @ti.kernel
-def count_triangles(colour: F1, nbr: I2, iso: ti.f32, tri_count: I1, cases: U2, count: I1):
+def count_triangles(color: F1, nbr: I2, iso: ti.f32, tri_count: I1, cases: U2, count: I1):
     """cases[s, n]: the case of cell n of block row s; count[s]: the row's triangles."""
     for s in count:
         c = 0
         for n in range(B3):
-            case = _case(colour, nbr, s, n, iso)
+            case = _case(color, nbr, s, n, iso)
             cases[s, n] = ti.cast(case, ti.u8)
             c += tri_count[case]
         count[s] = c
@@ -180,19 +180,19 @@ def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out
 
 
-def marching_cubes(colour: np.ndarray, blocks: np.ndarray, todo: np.ndarray, upper: np.ndarray,
+def marching_cubes(color: np.ndarray, blocks: np.ndarray, todo: np.ndarray, upper: np.ndarray,
                    neighbour, iso: float):
     """(g, faces): the `iso` surface of a block-sparse field as vertices in global node
     coordinates (float64) and triangles (int32) counter-clockwise seen from the side below
-    `iso` (outward for a fluid whose colour is above it).
+    `iso` (outward for a fluid whose color is above it).
 
-    colour: (nb + 1, 8, 8, 8), the last block all zero; blocks: (nb, 3) block coordinates;
+    color: (nb + 1, 8, 8, 8), the last block all zero; blocks: (nb, 3) block coordinates;
     todo: the blocks that own a cell crossing `iso` (a superset will do); upper: (len(todo), 7)
     their upper neighbours at block offsets CORNER[1:] (nb where missing); neighbour(offset,
     ids): the same for any blocks (Field.neighbour)."""
     nb = len(blocks)
     tri_edges, tri_count = table()
-    flat = colour.reshape(-1)
+    flat = color.reshape(-1)
     up = np.c_[todo, upper]                                             # 8 columns
     band = np.unique(up[up < nb])
     band_nbr = np.stack([band] + [neighbour(o, band) for o in CORNER[1:]], 1).astype(np.int32)

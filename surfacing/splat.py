@@ -1,4 +1,4 @@
-"""Colour-field splatting in Taichi: particles -> the nodes of a block-sparse grid near them.
+"""Color-field splatting in Taichi: particles -> the nodes of a block-sparse grid near them.
 
 c(x) = sum_j V_j W(x - x_j) with V_j = m_j / rho_j (the particle's volume, from the sim cache),
 and the velocity field u(x) = sum_j V_j v_j W(x - x_j) / c(x).
@@ -21,7 +21,7 @@ import taichi as ti
 
 from solver import kernels as K
 
-from .reconstruct import B, GridTooLarge
+from .grid import B, GridTooLarge
 
 B2, B3 = B * B, B * B * B
 MAX_LOOKUP = 1 << 28           # block-index entries (1 GiB of int32); beyond this, refuse
@@ -70,7 +70,7 @@ def k_splat(pos: V3, vel: V3, vol: F1, first: I1, last: I1, origin: vec3, cell: 
     0.58 s against 1.08 s for a node-by-node loop reading W from a table at 500k particles.
 
     target[block] is the slot each block's rows go to, -1 to skip the block. Row r (= i * 8 + j
-    within the block) of slot b is out[b * 64 + r] in the colour pass, which adds V_j W; the
+    within the block) of slot b is out[b * 64 + r] in the color pass, which adds V_j W; the
     velocity pass adds V_j W v_j, component a into out[(b * 3 + a) * 64 + r]. The outer loop
     runs over one phase's cubes in parallel; see the module docstring. Plain loads and stores,
     not `+=` (which Taichi compiles to an atomic add). Node indices are never negative, so
@@ -175,7 +175,7 @@ def mark_blocks(pos, base_block: np.ndarray, shape: tuple, origin: np.ndarray, c
 class Splat:
     """Particles sorted for the phased scatter onto the blocks their supports reach.
 
-    colour() is the colour field on every block; velocity(v, ids, colour) the velocity field
+    color() is the color field on every block; velocity(v, ids, color) the velocity field
     on the blocks `ids` only, from the particles that reach them."""
 
     def __init__(self, positions: np.ndarray, volumes: np.ndarray, cell: float, support: float,
@@ -195,14 +195,14 @@ class Splat:
     def n_blocks(self) -> int:
         return len(self.blocks)
 
-    def colour(self) -> np.ndarray:
+    def color(self) -> np.ndarray:
         """(nb + 1, 8, 8, 8) float32; the last block stays zero (the stand-in for missing ones)."""
-        colour = np.zeros((self.n_blocks + 1, B3), np.float32)
-        self._scatter(np.ones(len(self.order), bool), self.pos, self.lookup, colour, False)
-        return colour.reshape(-1, B, B, B)
+        color = np.zeros((self.n_blocks + 1, B3), np.float32)
+        self._scatter(np.ones(len(self.order), bool), self.pos, self.lookup, color, False)
+        return color.reshape(-1, B, B, B)
 
-    def velocity(self, velocities: np.ndarray, ids: np.ndarray, colour: np.ndarray) -> np.ndarray:
-        """(len(ids) + 1, 8, 8, 8, 3) float32 on the blocks `ids` (zero where colour <= 1e-6): a
+    def velocity(self, velocities: np.ndarray, ids: np.ndarray, color: np.ndarray) -> np.ndarray:
+        """(len(ids) + 1, 8, 8, 8, 3) float32 on the blocks `ids` (zero where color <= 1e-6): a
         view of component-major blocks, the layout the scatter writes."""
         slot = np.full(self.n_blocks + 1, -1, np.int32)
         slot[ids] = np.arange(len(ids), dtype=np.int32)
@@ -213,13 +213,13 @@ class Splat:
         vel = _vec3_ndarray(np.take(velocities, self.order, axis=0))
         self._scatter(touches.astype(bool), vel, target, momentum, True)
         u = momentum.reshape(-1, 3, B, B, B)
-        c = np.concatenate([colour[ids], np.zeros((1, B, B, B), np.float32)])[:, None]
+        c = np.concatenate([color[ids], np.zeros((1, B, B, B), np.float32)])[:, None]
         np.divide(u, c, out=u, where=c > 1e-6)
         u[np.broadcast_to(c <= 1e-6, u.shape)] = 0.0
         return np.moveaxis(u, 1, -1)
 
     def _scatter(self, use: np.ndarray, vel, target: np.ndarray, out: np.ndarray, velocity_pass: bool) -> None:
-        """Add the particles `use` (in sorted order) into `out`: the colour, or the momentum."""
+        """Add the particles `use` (in sorted order) into `out`: the color, or the momentum."""
         idx = np.flatnonzero(use)
         if len(idx) == 0:
             return

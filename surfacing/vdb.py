@@ -1,9 +1,9 @@
 """OpenVDB output with Debian's pyopenvdb (OpenVDB 10, NumPy 1.x).
 
 Grids (those the spec's surface.grids names): `surface` (level set, narrow band of `half_width`
-voxels, built from the mesh so the two agree), `density` (fog, the colour field wherever
+voxels, built from the mesh so the two agree), `density` (fog, the color field wherever
 particles reach) and `velocity` (Vec3, on the band of 8^3 blocks the surface passes through,
-where the colour exceeds FOG_TOLERANCE). All share one linear transform of voxel size `cell`;
+where the color exceeds FOG_TOLERANCE). All share one linear transform of voxel size `cell`;
 index (i, j, k) is at world cell * (i, j, k). Metadata: frame, time.
 """
 from __future__ import annotations
@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pyopenvdb as vdb
 
-from .reconstruct import B
+from .grid import B
 
-FOG_TOLERANCE = 1e-4     # colour values below this are background (inactive)
+FOG_TOLERANCE = 1e-4     # color values below this are background (inactive)
 ALL_GRIDS = ("surface", "density", "velocity")
 
 
@@ -44,7 +44,7 @@ def _density(field, xform):
     if field is not None:
         # one copy per 8^3 block: each is exactly one leaf node of the grid
         for n, b in enumerate(field.blocks):
-            grid.copyFromArray(field.colour[n], ijk=tuple(int(v) * B for v in b), tolerance=FOG_TOLERANCE)
+            grid.copyFromArray(field.color[n], ijk=tuple(int(v) * B for v in b), tolerance=FOG_TOLERANCE)
     return grid
 
 
@@ -59,7 +59,7 @@ def _velocity(field, xform):
         # particles) cost 0.1 s more, one over the whole band 120 MB more
         for s0 in range(0, len(ids), 1024):
             chunk = ids[s0:s0 + 1024]
-            vel = np.where((field.colour[chunk] > FOG_TOLERANCE)[..., None],
+            vel = np.where((field.color[chunk] > FOG_TOLERANCE)[..., None],
                            field.velocity[s0:s0 + len(chunk)], np.float32(0))
             for v, b in zip(vel, field.blocks[chunk] * B):
                 grid.copyFromArray(v, ijk=tuple(int(x) for x in b), tolerance=(0.0, 0.0, 0.0))
@@ -78,7 +78,3 @@ def _level_set(name, mesh, xform, half_width):
         grid.transform = xform
     grid.name = name
     return grid
-
-
-def write(path, grids) -> None:
-    vdb.write(str(path), grids=grids)

@@ -48,6 +48,30 @@ def small(*extra: str) -> list[str]:
     return out
 
 
+def tiny_spec(block=((0.0, 0.0, 0.0), (0.1, 0.1, 0.1)), domain=((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)), *,
+              sim=None, fluid=None, velocity=(0.0, 0.0, 0.0), colliders=(), name="t", **sections) -> dict:
+    """A job as a dict: one fluid "w" filling `block` inside `domain`. `sim` and `fluid` add keys
+    to those sections (particle_radius is 0.01 unless given); other sections go in as given."""
+    return {"shot": {"name": name, **sections.pop("shot", {})},
+            "sim": {"particle_radius": 0.01, **(sim or {})},
+            "domain": {"min": domain[0], "max": domain[1]},
+            "fluids": ({"name": "w", **(fluid or {}),
+                        "blocks": ({"min": block[0], "max": block[1], "velocity": velocity},)},),
+            "colliders": tuple(colliders), **sections}
+
+
+def use_taichi_cpu() -> None:
+    """Taichi on the CPU with one thread: the particle order, and so every sum, is the same on
+    every run (tests compare states bit for bit). A no-op when already so."""
+    from solver.backend import init_taichi
+    init_taichi("cpu", 1)
+
+
+@pytest.fixture(scope="module")
+def taichi_cpu():
+    use_taichi_cpu()
+
+
 def spec_of(job, args):
     """The ShotSpec a `sphshot` call with these `--set` arguments sees."""
     from pipeline.spec import load_spec

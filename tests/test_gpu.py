@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import tiny_spec
 from pipeline.spec import ShotSpec
 
 pytestmark = [pytest.mark.gpu,
@@ -18,20 +19,19 @@ BOULDER = Path(__file__).resolve().parents[1] / "jobs" / "assets" / "boulder.obj
 
 def small_dambreak(mesh: bool = False):
     colliders = ({"type": "mesh", "path": str(BOULDER), "scale": 0.1, "translate": (0.3, 0.03, 0.15)},) if mesh else ()
-    return ShotSpec.model_validate({
-        "shot": {"name": "g"}, "sim": {"particle_radius": 0.01},
-        "domain": {"min": (0, 0, 0), "max": (0.6, 0.4, 0.3)},
-        "fluids": ({"name": "w", "blocks": ({"min": (0, 0, 0), "max": (0.2, 0.3, 0.3)},)},),
-        "colliders": colliders})
+    return ShotSpec.model_validate(tiny_spec(((0, 0, 0), (0.2, 0.3, 0.3)), ((0, 0, 0), (0.6, 0.4, 0.3)),
+                                             name="g", colliders=colliders))
 
 
 def run_on(backend: str, t_end: float, mesh: bool = False):
     from solver.backend import init_taichi
     init_taichi(backend, 1 if backend == "cpu" else 0)
-    from solver.sph import SolverConfig, SPHSolver, fill_blocks
+    from pipeline.stages.sim import fluid_blocks, solver_params
+    from solver.fill import fill_blocks
+    from solver.sph import SPHSolver
     spec = small_dambreak(mesh)
-    cfg = SolverConfig.from_spec(spec)
-    s = SPHSolver(cfg, fill_blocks(spec, cfg))
+    params = solver_params(spec)
+    s = SPHSolver(params, fill_blocks(params, fluid_blocks(spec)))
     s.advance_to(t_end)
     return s.snapshot()
 
@@ -49,11 +49,12 @@ def test_cuda_mesh_collider_matches_cpu():
     """The mesh collider's distance grid on CUDA: the block has reached the boulder by 0.15 s;
     no particle is inside it on either backend, and the mean positions agree within a radius
     (the flow is chaotic by then, so particle by particle they do not)."""
-    from solver.sph import SolverConfig, collider_clearance
+    from pipeline.stages.sim import solver_params
+    from solver.boundaries import collider_clearance
     out = {b: run_on(b, 0.15, mesh=True) for b in ("cuda", "cpu")}
-    cfg = SolverConfig.from_spec(small_dambreak(True))
+    params = solver_params(small_dambreak(True))
     for b, snap in out.items():
-        assert collider_clearance(cfg, snap["position"]).min() > 0, b
+        assert collider_clearance(params, snap["position"]).min() > 0, b
     np.testing.assert_allclose(out["cuda"]["position"].mean(0), out["cpu"]["position"].mean(0), atol=0.01)
 
 

@@ -126,7 +126,7 @@ def test_editing_the_mesh_file_invalidates_the_sim(tmp_path):
 
 
 def test_render_draws_the_placed_mesh(tmp_path):
-    from pipeline.render import collider_meshes
+    from pipeline.stages.render import collider_meshes
 
     write_cube(tmp_path / "cube.obj")
     job = tmp_path / "job.toml"

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from conftest import tiny_spec, use_taichi_cpu
 from pipeline.cache import ShotPaths
 from pipeline.progress import Progress
 from pipeline.spec import ShotSpec
@@ -21,7 +22,7 @@ from pipeline.spec import ShotSpec
 GOLDEN = Path(__file__).parent / "golden"
 # Mean absolute difference per channel (0-255) and the share of pixels off by more than 40:
 # llvmpipe versions and GPU drivers differ in shading round-off and edge coverage, not in
-# what is where; a moved camera, wrong colour or missing object breaks both bounds by far.
+# what is where; a moved camera, wrong color or missing object breaks both bounds by far.
 MEAN_TOL = 3.0
 OUTLIER_TOL = 0.01
 
@@ -33,24 +34,22 @@ def scene(tmp_path, **render):
             "lights": ({"position": (2.0, 3.0, 2.0), "intensity": 1.0},
                        {"position": (-2.0, 1.0, 1.0), "intensity": 0.4})}
     base.update(render)
-    return ShotSpec.model_validate({
-        "shot": {"name": "golden", "frame_start": 1, "frame_end": 3, "output": str(tmp_path)},
-        "sim": {"particle_radius": 0.01},
-        "domain": {"min": (0, 0, 0), "max": (0.6, 0.4, 0.4)},
-        "fluids": ({"name": "water", "color": (0.2, 0.45, 0.85),
-                    "blocks": ({"min": (0, 0, 0), "max": (0.2, 0.2, 0.2)},)},),
-        "colliders": ({"type": "box", "min": (0.45, 0.0, 0.1), "max": (0.55, 0.1, 0.3)},),
-        "render": base})
+    return ShotSpec.model_validate(tiny_spec(
+        ((0, 0, 0), (0.2, 0.2, 0.2)), ((0, 0, 0), (0.6, 0.4, 0.4)), name="golden",
+        shot={"frame_start": 1, "frame_end": 3, "output": str(tmp_path)},
+        fluid={"name": "water", "color": (0.2, 0.45, 0.85)},
+        colliders=({"type": "box", "min": (0.45, 0.0, 0.1), "max": (0.55, 0.1, 0.3)},), render=base))
 
 
 def synthetic_meshes(spec, frames):
     """A sphere of water that moves along x, written where the surface stage would put it."""
     import pyvista as pv
 
-    from solver.backend import init_taichi
-    from surfacing.reconstruct import Mesh, vertex_normals, write_mesh
+    from pipeline.formats import write_mesh
+    from surfacing.mesh import Mesh
+    from surfacing.reconstruct import vertex_normals
 
-    init_taichi("cpu", 0)             # vertex_normals is a Taichi loop
+    use_taichi_cpu()                  # vertex_normals is a Taichi loop
     paths = ShotPaths.for_spec(spec)
     for f in frames:
         s = pv.Sphere(radius=0.1, center=(0.15 + 0.05 * f, 0.1, 0.2), theta_resolution=40, phi_resolution=40)
@@ -64,7 +63,7 @@ def synthetic_meshes(spec, frames):
 
 
 def synthetic_particles(spec, frames):
-    from pipeline.particles import write_frame
+    from pipeline.formats import write_frame
 
     paths = ShotPaths.for_spec(spec)
     ax = np.arange(0.02, 0.2, 0.02)
@@ -100,7 +99,7 @@ def compare(name: str, image_path: Path):
 
 
 def test_surface_golden_headless(tmp_path):
-    from pipeline import render
+    from pipeline.stages import render
 
     assert "DISPLAY" not in os.environ, "renders must work with DISPLAY unset"
     spec = scene(tmp_path)
@@ -111,8 +110,8 @@ def test_surface_golden_headless(tmp_path):
     assert img.shape == (180, 320, 3)
 
 
-def test_particles_golden_coloured_by_speed(tmp_path):
-    from pipeline import render
+def test_particles_golden_colored_by_speed(tmp_path):
+    from pipeline.stages import render
 
     spec = scene(tmp_path, mode="particles", color_by="speed")
     paths = synthetic_particles(spec, [1, 2, 3])
@@ -124,7 +123,7 @@ def test_kept_renderer_renders_as_a_new_one(tmp_path):
     """The render stage keeps its renderer open between calls (a Dask worker gets one frame a
     task). Frame 2 rendered after frames 3 and 1 in the kept renderer is the image a new
     renderer makes, pixel for pixel; another thread and another spec get renderers of their own."""
-    from pipeline import render
+    from pipeline.stages import render
 
     spec = scene(tmp_path / "a")
     paths = synthetic_meshes(spec, [1, 2, 3])
@@ -150,7 +149,7 @@ def test_kept_renderer_renders_as_a_new_one(tmp_path):
 
 def test_golden_catches_a_moved_camera(tmp_path):
     """The tolerance is tight enough to see a real change (here: the camera 10 cm off)."""
-    from pipeline import render
+    from pipeline.stages import render
 
     spec = scene(tmp_path, camera={"position": (1.3, 0.8, 1.3), "focal_point": (0.3, 0.15, 0.2), "fov": 40.0})
     paths = synthetic_meshes(spec, [2])
@@ -162,7 +161,7 @@ def test_golden_catches_a_moved_camera(tmp_path):
 def test_movie_and_contact_sheet(tmp_path):
     import imageio_ffmpeg
 
-    from pipeline import render
+    from pipeline.stages import render
 
     spec = scene(tmp_path, resolution=(161, 91))      # odd: the movie pads to even
     paths = synthetic_meshes(spec, [1, 2, 3])
@@ -182,7 +181,7 @@ def test_movie_and_contact_sheet(tmp_path):
 
 
 def test_camera_keys_interpolate(tmp_path):
-    from pipeline.render import camera_at
+    from pipeline.stages.render import camera_at
 
     spec = scene(tmp_path, camera_keys=(
         {"frame": 1, "position": (1.0, 1.0, 1.0), "focal_point": (0, 0, 0), "fov": 30.0},
@@ -197,7 +196,7 @@ def test_memory_stays_flat_over_100_frames(tmp_path):
     what it was after frame 20 (a leak of one mesh or image per frame would add > 30 MB)."""
     import psutil
 
-    from pipeline.render import FrameRenderer
+    from pipeline.stages.render import FrameRenderer
 
     spec = scene(tmp_path, resolution=(160, 90))
     paths = synthetic_meshes(spec, [1, 2, 3])
@@ -217,17 +216,17 @@ def test_memory_stays_flat_over_100_frames(tmp_path):
 
 def test_depth_pass_png16(tmp_path):
     """The optional depth pass: 16-bit PNG, background 65535, the sphere nearer than the ground."""
-    from pipeline import render
+    from pipeline.stages import render
 
     spec = scene(tmp_path, depth="png16", ground=False, domain=False, colliders=False, background_top=None)
     paths = synthetic_meshes(spec, [2])
     render.run(spec, [2], paths, quiet())
     depth = np.asarray(Image.open(paths.render_depth(2)))
     assert depth.dtype == np.uint16 and depth.shape == (180, 320)
-    colour = np.asarray(Image.open(paths.render_frame(2)).convert("RGB")).astype(int)
-    background = colour[0, 0]
-    hit = np.abs(colour - background).sum(axis=2) > 30          # pixels showing the sphere
+    color = np.asarray(Image.open(paths.render_frame(2)).convert("RGB")).astype(int)
+    background = color[0, 0]
+    hit = np.abs(color - background).sum(axis=2) > 30          # pixels showing the sphere
     assert hit.mean() > 0.01
     assert (depth[~hit] == 65535).mean() > 0.95, "background must be 65535"
-    # silhouette pixels are colour-blended with the background but not depth-blended: allow 2%
+    # silhouette pixels are color-blended with the background but not depth-blended: allow 2%
     assert (depth[hit] < 65535).mean() > 0.98 and depth.min() == 0   # normalised: nearest hit is 0

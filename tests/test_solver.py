@@ -5,28 +5,30 @@ import pytest
 
 from pipeline.spec import ShotSpec
 from solver import kernels as K
-from solver.backend import init_taichi
+from conftest import tiny_spec
 
 ALL = {"poly6": K.POLY6, "spiky": K.SPIKY, "cubic": K.CUBIC, "wendland": K.WENDLAND,
        "viscosity": K.VISCOSITY}
 
 
 @pytest.fixture(scope="module", autouse=True)
-def taichi_cpu():
-    init_taichi("cpu", 1)
+def _taichi(taichi_cpu):
+    pass
 
 
-def make_solver(spec_dict, mutate=None, with_cfg=False):
-    """A solver for a spec; with_cfg starts fluid blocks in hydrostatic equilibrium as the sim
+def make_solver(spec_dict, mutate=None, settle=False):
+    """A solver for a spec; settle starts fluid blocks in hydrostatic equilibrium as the sim
     stage does (tests of other properties start from the plain lattice)."""
-    from solver.sph import SolverConfig, SPHSolver, fill_blocks
+    from pipeline.stages.sim import fluid_blocks, solver_params
+    from solver.fill import fill_blocks
+    from solver.sph import SPHSolver
 
     spec = ShotSpec.model_validate(spec_dict)
-    cfg = SolverConfig.from_spec(spec)
-    state = fill_blocks(spec, cfg if with_cfg else None)
+    params = solver_params(spec)
+    state = fill_blocks(params, fluid_blocks(spec), settle=settle)
     if mutate:
         mutate(state)
-    return spec, cfg, SPHSolver(cfg, state)
+    return spec, params, SPHSolver(params, state)
 
 
 def radial_integral(f, h, n=200001):
@@ -78,10 +80,7 @@ def test_taichi_kernels_match_numpy_and_gradients_are_odd(name):
 def test_ghost_tables_give_rest_density_at_walls_edges_and_corners():
     """A block filled on the lattice into a corner of the domain starts at rest density
     everywhere it touches a wall (the boundary sums complete the lattice)."""
-    spec, cfg, s = make_solver({
-        "shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
-        "domain": {"min": (0, 0, 0), "max": (0.3, 0.3, 0.3)},
-        "fluids": ({"name": "w", "blocks": ({"min": (0, 0, 0), "max": (0.16, 0.16, 0.16)},)},)})
+    spec, params, s = make_solver(tiny_spec(((0, 0, 0), (0.16, 0.16, 0.16)), ((0, 0, 0), (0.3, 0.3, 0.3))))
     d = s.snapshot()
     p = d["position"]
     touching = (p < 0.05 - 1e-6).sum(axis=1) >= 1        # within h of at least one wall...
@@ -101,22 +100,19 @@ def test_momentum_is_conserved_without_gravity_or_walls():
     def jitter(state):
         state["velocity"] = rng.normal(0.0, 0.2, state["velocity"].shape).astype(np.float32)
 
-    spec, cfg, s = make_solver({
-        "shot": {"name": "t"}, "sim": {"particle_radius": 0.01, "gravity": (0, 0, 0), "max_speed": 2.0},
-        "domain": {"min": (0, 0, 0), "max": (1.0, 1.0, 1.0)},
-        "fluids": ({"name": "w", "viscosity": 2.0,
-                    "blocks": ({"min": (0.4, 0.4, 0.4), "max": (0.6, 0.6, 0.6)},)},)}, jitter)
-    m = cfg.fluid_table[0, 0]
+    spec, params, s = make_solver(tiny_spec(((0.4, 0.4, 0.4), (0.6, 0.6, 0.6)), sim={"gravity": (0, 0, 0), "max_speed": 2.0},
+                                            fluid={"viscosity": 2.0}), jitter)
+    m = params.fluid_table[0, 0]
 
     def momentum():
         s.refresh_fields()
-        v = s.vel.to_numpy().astype(np.float64)     # the integrator's own (half-step) velocity
+        v = s.velocity.to_numpy().astype(np.float64)     # the integrator's own (half-step) velocity
         return m * v.sum(0), m * np.linalg.norm(v, axis=1).sum()
 
     p0, scale = momentum()
     s.advance_to(0.1)
     p1, _ = momentum()
-    pos = s.pos.to_numpy()
+    pos = s.position.to_numpy()
     assert pos.min() > 0.05 and pos.max() < 0.95, "the blob reached a wall; the test needs no walls"
     assert s.steps > 100
     drift = np.abs(p1 - p0).max() / scale
@@ -128,10 +124,7 @@ def test_overflowing_neighbour_lists_grow():
     within h + skin), the solver must notice the overflow, grow the lists and build them again:
     its state then equals, bit for bit, that of a solver whose lists were large enough from the
     start (one thread, so the grid order is the same)."""
-    spec_dict = {
-        "shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
-        "domain": {"min": (0, 0, 0), "max": (0.3, 0.3, 0.3)},
-        "fluids": ({"name": "w", "blocks": ({"min": (0.0, 0.0, 0.0), "max": (0.12, 0.2, 0.12)},)},)}
+    spec_dict = tiny_spec(((0.0, 0.0, 0.0), (0.12, 0.2, 0.12)), ((0, 0, 0), (0.3, 0.3, 0.3)))
     _, _, roomy = make_solver(spec_dict)
     _, _, tight = make_solver(spec_dict)
     tight._grow_neighbours(8)
@@ -152,11 +145,8 @@ def test_verlet_lists_hold_every_pair_within_h_until_rebuilt():
     and float64 may disagree)."""
     from scipy.spatial import cKDTree
 
-    _, cfg, s = make_solver({
-        "shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
-        "domain": {"min": (0, 0, 0), "max": (0.4, 0.5, 0.2)},
-        "fluids": ({"name": "w", "blocks": ({"min": (0.0, 0.2, 0.0), "max": (0.16, 0.4, 0.1)},)},)})
-    h = cfg.h
+    _, params, s = make_solver(tiny_spec(((0.0, 0.2, 0.0), (0.16, 0.4, 0.1)), ((0, 0, 0), (0.4, 0.5, 0.2))))
+    h = params.h
     checked = stale = 0
     while s.time < 0.25:
         s.step()
@@ -165,8 +155,8 @@ def test_verlet_lists_hold_every_pair_within_h_until_rebuilt():
         built = s.lists_built
         s.refresh_fields()          # lists and density at the positions the step moved to
         stale += s.lists_built == built
-        pos = s.pos.to_numpy().astype(np.float64)
-        near, count, cap = s.near.to_numpy(), s.nearn.to_numpy(), s.nb_cap
+        pos = s.position.to_numpy().astype(np.float64)
+        near, count, cap = s.near.to_numpy(), s.near_count.to_numpy(), s.nb_cap
         listed = {(i, int(j)) for i in range(s.n) for j in near[i * cap:i * cap + count[i]]}
         tree = cKDTree(pos)
         truth = set()
@@ -179,7 +169,7 @@ def test_verlet_lists_hold_every_pair_within_h_until_rebuilt():
         assert listed == truth, f"step {s.steps}: {len(truth - listed)} pairs missing, {len(listed - truth)} extra"
         checked += 1
     assert checked >= 10 and stale >= checked / 2, (checked, stale)
-    assert s.pos.to_numpy()[:, 1].min() < 0.02, "the block never reached the floor"
+    assert s.position.to_numpy()[:, 1].min() < 0.02, "the block never reached the floor"
     assert 1 < s.lists_built < s.steps / 2, (s.lists_built, s.steps)
 
 
@@ -193,13 +183,10 @@ def resting_column():
     over several periods. Returns per-sample (mean density below the top layer, floor pressure
     extrapolated from the interior profile, rho g H)."""
     H, W = 0.3, 0.2
-    spec, cfg, s = make_solver({
-        "shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
-        "domain": {"min": (0, 0, 0), "max": (W, H + 0.1, W)},
-        "fluids": ({"name": "w", "viscosity": 3.0, "blocks": ({"min": (0, 0, 0), "max": (W, H, W)},)},)},
-        with_cfg=True)
+    spec, params, s = make_solver(tiny_spec(((0, 0, 0), (W, H, W)), ((0, 0, 0), (W, H + 0.1, W)),
+                                            fluid={"viscosity": 3.0}), settle=True)
     s.advance_to(0.8)
-    h, samples = cfg.h, []
+    h, samples = params.h, []
     for k in range(50):
         s.advance_to(0.8 + 0.004 * (k + 1))
         d = s.snapshot()
@@ -209,7 +196,7 @@ def resting_column():
         inner = (y > h) & (y < top - h) & (p[:, 0] > h) & (p[:, 0] < W - h) & (p[:, 2] > h) & (p[:, 2] < W - h)
         _slope, p_floor = np.polyfit(y[inner], d["pressure"][inner], 1)
         samples.append((d["density"][y < top - h].mean(), p_floor, 1000.0 * 9.81 * top))
-    return np.array(samples), float(np.sqrt((s.vel.to_numpy() ** 2).sum(axis=1).mean()))
+    return np.array(samples), float(np.sqrt((s.velocity.to_numpy() ** 2).sum(axis=1).mean()))
 
 
 def test_resting_column_density(resting_column):
@@ -238,11 +225,10 @@ def test_surface_tension_rounds_a_cube():
     """Without gravity, a cube under surface tension alone becomes rounder. Measure: corner
     prominence, max radius / rms radius about the centre: 1.73 for a solid cube, 1.29 for a
     ball (1.57 for this 10^3 lattice). It must close at least half the gap to a ball."""
-    spec, cfg, s = make_solver({
-        "shot": {"name": "t"}, "sim": {"particle_radius": 0.005, "gravity": (0, 0, 0), "max_speed": 0.5},
-        "domain": {"min": (0, 0, 0), "max": (0.3, 0.3, 0.3)},
-        "fluids": ({"name": "w", "viscosity": 0.5, "surface_tension": 2.0,
-                    "blocks": ({"min": (0.1, 0.1, 0.1), "max": (0.2, 0.2, 0.2)},)},)})
+    spec, params, s = make_solver(tiny_spec(
+        ((0.1, 0.1, 0.1), (0.2, 0.2, 0.2)), ((0, 0, 0), (0.3, 0.3, 0.3)),
+        sim={"particle_radius": 0.005, "gravity": (0, 0, 0), "max_speed": 0.5},
+        fluid={"viscosity": 0.5, "surface_tension": 2.0}))
 
     def prominence():
         p = s.snapshot()["position"].astype(np.float64)
@@ -259,20 +245,15 @@ def test_surface_tension_rounds_a_cube():
 # -------------------------------------------------------------------------------- colliders
 def test_no_particle_inside_obstacles_or_outside_containers():
     """A fast stream into a sphere, a box and a capsule inside a capsule container."""
-    spec_dict = {
-        "shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
-        "domain": {"min": (0, 0, 0), "max": (1.0, 0.6, 0.4)},
-        "fluids": ({"name": "w", "blocks": ({"min": (0.02, 0.2, 0.1), "max": (0.2, 0.4, 0.3),
-                                             "velocity": (4.0, 0.0, 0.0)},)},),
-        "colliders": ({"type": "sphere", "center": (0.45, 0.25, 0.2), "radius": 0.08},
-                      {"type": "box", "min": (0.7, 0.0, 0.1), "max": (0.74, 0.3, 0.3)},
-                      {"type": "capsule", "a": (0.3, 0.05, 0.05), "b": (0.3, 0.05, 0.35), "radius": 0.03}),
-    }
-    spec, cfg, s = make_solver(spec_dict)
+    spec, params, s = make_solver(tiny_spec(
+        ((0.02, 0.2, 0.1), (0.2, 0.4, 0.3)), ((0, 0, 0), (1.0, 0.6, 0.4)), velocity=(4.0, 0.0, 0.0),
+        colliders=({"type": "sphere", "center": (0.45, 0.25, 0.2), "radius": 0.08},
+                   {"type": "box", "min": (0.7, 0.0, 0.1), "max": (0.74, 0.3, 0.3)},
+                   {"type": "capsule", "a": (0.3, 0.05, 0.05), "b": (0.3, 0.05, 0.35), "radius": 0.03})))
     worst = {"sphere": 0.0, "box": 0.0, "capsule": 0.0}
     for k in range(1, 13):
         s.advance_to(k / 48)
-        p = s.pos.to_numpy().astype(np.float64)
+        p = s.position.to_numpy().astype(np.float64)
         c = spec.colliders
         worst["sphere"] = min(worst["sphere"], (np.linalg.norm(p - c[0].center, axis=1) - c[0].radius).min())
         lo, hi = np.array(c[1].min), np.array(c[1].max)
@@ -288,17 +269,15 @@ def test_no_particle_inside_obstacles_or_outside_containers():
 
 
 def test_container_capsule_keeps_particles_inside():
-    spec, cfg, s = make_solver({
-        "shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
-        "domain": {"min": (0, 0, 0), "max": (0.6, 0.6, 0.6)},
-        "fluids": ({"name": "w", "blocks": ({"min": (0.22, 0.3, 0.22), "max": (0.38, 0.42, 0.38)},)},),
-        "colliders": ({"type": "capsule", "a": (0.3, 0.15, 0.3), "b": (0.3, 0.45, 0.3), "radius": 0.13,
-                       "mode": "container"},)})
+    spec, params, s = make_solver(tiny_spec(
+        ((0.22, 0.3, 0.22), (0.38, 0.42, 0.38)), ((0, 0, 0), (0.6, 0.6, 0.6)),
+        colliders=({"type": "capsule", "a": (0.3, 0.15, 0.3), "b": (0.3, 0.45, 0.3), "radius": 0.13,
+                    "mode": "container"},)))
     c = spec.colliders[0]
     a, b = np.array(c.a), np.array(c.b)
     for k in range(1, 9):
         s.advance_to(k / 48)
-        p = s.pos.to_numpy().astype(np.float64)
+        p = s.position.to_numpy().astype(np.float64)
         t = np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
         dist = np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1)
         assert dist.max() <= c.radius + 1e-5, f"frame {k}: a particle left the container by {dist.max() - c.radius:.2e} m"
@@ -308,16 +287,14 @@ def test_a_blown_up_state_raises_instead_of_crawling():
     """Particles squeezed 100-fold: pressure explodes. Unguarded, the force limit makes the
     first step 3e-8 s (the acoustic step is 1e-3 s) and the block bursts apart at 1,500 m/s,
     yet ends the frame without a NaN; the solver stops and says so instead."""
-    from solver.sph import Unstable
+    from solver.errors import Unstable
 
     def squeeze(state):
         p = state["position"]
         state["position"] = (p.mean(0) + 0.01 * (p - p.mean(0))).astype(np.float32)
 
-    _spec, _cfg, s = make_solver({"shot": {"name": "t"}, "sim": {"particle_radius": 0.02},
-                                  "fluids": ({"name": "w", "blocks": ({"min": (0.3, 0.1, 0.1),
-                                                                       "max": (0.5, 0.3, 0.3)},)},)},
-                                 mutate=squeeze)
+    _spec, _params, s = make_solver(tiny_spec(((0.3, 0.1, 0.1), (0.5, 0.3, 0.3)), sim={"particle_radius": 0.02}),
+                                    mutate=squeeze)
     with pytest.raises(Unstable, match="time step fell to"):
         s.advance_to(1 / 24)
 
@@ -334,11 +311,9 @@ def ball_mesh(path, nsub=4):
 
 
 def ball_spec(tmp_path, block, mode="obstacle", centre=(0.45, 0.25, 0.2), radius=0.08, velocity=(0.0, 0.0, 0.0)):
-    return {"shot": {"name": "t"}, "sim": {"particle_radius": 0.01},
-            "domain": {"min": (0, 0, 0), "max": (1.0, 0.6, 0.4)},
-            "fluids": ({"name": "w", "blocks": ({"min": block[0], "max": block[1], "velocity": velocity},)},),
-            "colliders": ({"type": "mesh", "path": str(ball_mesh(tmp_path / "ball.obj")), "scale": radius,
-                           "translate": centre, "mode": mode},)}
+    return tiny_spec(block, ((0, 0, 0), (1.0, 0.6, 0.4)), velocity=velocity,
+                     colliders=({"type": "mesh", "path": str(ball_mesh(tmp_path / "ball.obj")), "scale": radius,
+                                 "translate": centre, "mode": mode},))
 
 
 def ball_tolerance(spec):
@@ -347,7 +322,7 @@ def ball_tolerance(spec):
     voxel^2 / 8 times the sum of the largest second derivatives of |x - c| along each axis
     (1 / rho each), for rho >= R - h."""
     verts, tris = spec.collider_mesh(0)
-    c, R, h = np.array(spec.colliders[0].translate), spec.colliders[0].scale, spec.smoothing_radius
+    c, R, h = np.array(spec.colliders[0].translate), spec.colliders[0].scale, spec.kernel_radius_m
     a, b, d = (verts[tris[:, k]] - c for k in range(3))
     n = np.cross(b - a, d - a)
     sag = R - np.min(np.abs((n * a).sum(1)) / np.linalg.norm(n, axis=1))
@@ -357,18 +332,19 @@ def ball_tolerance(spec):
 
 def test_mesh_collider_distance_matches_the_analytic_sphere(tmp_path):
     """OpenVDB's distance grid of an icosphere, sampled by the solver, against |x - c| - R."""
-    from solver.sph import SolverConfig, collider_clearance
+    from pipeline.stages.sim import solver_params
+    from solver.boundaries import collider_clearance
 
     spec = ShotSpec.model_validate(ball_spec(tmp_path, ((0.02, 0.02, 0.02), (0.2, 0.2, 0.2))))
-    cfg = SolverConfig.from_spec(spec)
-    c, R, h = np.array(spec.colliders[0].translate), spec.colliders[0].scale, spec.smoothing_radius
+    params = solver_params(spec)
+    c, R, h = np.array(spec.colliders[0].translate), spec.colliders[0].scale, spec.kernel_radius_m
     rng = np.random.default_rng(7)
     u = rng.normal(size=(4000, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     exact = rng.uniform(-h, h, 4000)             # within one kernel radius either side
     p = c + u * (R + exact)[:, None]
     sag, tol = ball_tolerance(spec)
-    err = collider_clearance(cfg, p) - exact
+    err = collider_clearance(params, p) - exact
     voxel = spec.colliders[0].voxel_size * spec.sim.particle_radius
     near = exact > -voxel           # outside, or less than one voxel deep
     assert sag > 0 and np.abs(err[near]).max() < tol, f"max error {np.abs(err[near]).max():.2e} m, allowed {tol:.2e} m"
@@ -379,7 +355,7 @@ def test_mesh_collider_distance_matches_the_analytic_sphere(tmp_path):
     # neighbours' closest triangles, not an exact search: measured within 0.1 voxel here
     assert np.abs(err[~near]).max() < tol + 0.15 * voxel, np.abs(err[~near]).max()
     # normals: the gradient of the trilinear field points along the radius
-    normals = _collider_normals(cfg, p)
+    normals = _collider_normals(params, p)
     cosines = (normals * u).sum(1)
     # near the surface within 8 degrees (measured 5: facets and the gradient of a trilinear
     # field); deeper inside within 25 degrees (measured 17), still pushing particles outward
@@ -387,10 +363,11 @@ def test_mesh_collider_distance_matches_the_analytic_sphere(tmp_path):
     assert cosines[~near].min() > 0.9, cosines[~near].min()
 
 
-def _collider_normals(cfg, points):
+def _collider_normals(params, points):
     import taichi as ti
 
-    from solver.sph import V3, F1, F2, I1, collider_arrays, collider_sdf
+    from solver.boundaries import collider_arrays, collider_sdf
+    from solver.types import F1, F2, I1, V3
 
     @ti.kernel
     def normals(pos: V3, ctype: I1, cprm: F2, sdf: F1, out: V3):
@@ -400,45 +377,46 @@ def _collider_normals(cfg, points):
 
     pos, out = ti.Vector.ndarray(3, ti.f32, len(points)), ti.Vector.ndarray(3, ti.f32, len(points))
     pos.from_numpy(points.astype(np.float32))
-    normals(pos, *collider_arrays(cfg), out)
+    normals(pos, *collider_arrays(params), out)
     return out.to_numpy()
 
 
 def test_no_particle_inside_a_mesh_obstacle(tmp_path):
     """A fast stream into an icosphere mesh: the particles reach it and none ends inside."""
-    spec, cfg, s = make_solver(ball_spec(tmp_path, ((0.02, 0.2, 0.1), (0.2, 0.4, 0.3)), velocity=(4.0, 0.0, 0.0)))
+    spec, params, s = make_solver(ball_spec(tmp_path, ((0.02, 0.2, 0.1), (0.2, 0.4, 0.3)), velocity=(4.0, 0.0, 0.0)))
     c, R = np.array(spec.colliders[0].translate), spec.colliders[0].scale
     _sag, tol = ball_tolerance(spec)
     closest = np.inf
     for k in range(1, 13):
         s.advance_to(k / 48)
-        dist = np.linalg.norm(s.pos.to_numpy().astype(np.float64) - c, axis=1) - R
+        dist = np.linalg.norm(s.position.to_numpy().astype(np.float64) - c, axis=1) - R
         closest = min(closest, dist.min())
         assert dist.min() > -tol, f"frame {k}: a particle is {-dist.min():.2e} m inside the mesh"
     assert closest < spec.sim.particle_radius, f"the stream never reached the mesh (closest {closest:.3f} m)"
 
 
 def test_mesh_container_keeps_particles_inside(tmp_path):
-    spec, cfg, s = make_solver(ball_spec(tmp_path, ((0.4, 0.25, 0.15), (0.5, 0.3, 0.25)), mode="container",
+    spec, params, s = make_solver(ball_spec(tmp_path, ((0.4, 0.25, 0.15), (0.5, 0.3, 0.25)), mode="container",
                                          centre=(0.45, 0.25, 0.2), radius=0.12))
     c, R = np.array(spec.colliders[0].translate), spec.colliders[0].scale
     _sag, tol = ball_tolerance(spec)
     for k in range(1, 9):
         s.advance_to(k / 48)
-        dist = np.linalg.norm(s.pos.to_numpy().astype(np.float64) - c, axis=1) - R
+        dist = np.linalg.norm(s.position.to_numpy().astype(np.float64) - c, axis=1) - R
         assert dist.max() < tol, f"frame {k}: a particle left the container by {dist.max():.2e} m"
     assert dist.max() > -0.1 * R, "the fluid never reached the container's wall"
 
 
 def test_fill_leaves_colliders_empty(tmp_path):
     """A block overlapping an obstacle is filled around it, not inside it."""
-    from solver.sph import SolverConfig, fill_blocks
+    from pipeline.stages.sim import fluid_blocks, solver_params
+    from solver.fill import fill_blocks
 
     block = ((0.3, 0.1, 0.05), (0.6, 0.4, 0.35))
     spec = ShotSpec.model_validate({**ball_spec(tmp_path, block), "sim": {"particle_radius": 0.01, "gravity": (0, 0, 0)}})
-    cfg = SolverConfig.from_spec(spec)
-    full = fill_blocks(spec)["position"]
-    kept = fill_blocks(spec, cfg)["position"]
+    params = solver_params(spec)
+    full = fill_blocks(params, fluid_blocks(spec), settle=False)["position"]
+    kept = fill_blocks(params, fluid_blocks(spec))["position"]
     c, R, r = np.array(spec.colliders[0].translate), spec.colliders[0].scale, spec.sim.particle_radius
     _sag, tol = ball_tolerance(spec)
     dist_full = np.linalg.norm(full - c, axis=1) - R
@@ -455,9 +433,9 @@ def test_stop_and_resume_is_bit_identical_on_one_thread(job_copy):
     """Frames after a resume from a checkpoint equal those of an uninterrupted run, bit for bit."""
     from pipeline.cache import ShotPaths
     from pipeline.progress import Progress
-    from pipeline.particles import read_frame
+    from pipeline.formats import read_frame
     from pipeline.spec import load_spec
-    from solver import stage
+    from pipeline.stages import sim as stage
 
     job = job_copy()
     common = ["sim.particle_radius=0.02", "sim.threads=1", "shot.frame_end=8", "shot.checkpoint_every=3"]

@@ -54,7 +54,7 @@ CORPUS = [
     ("bad-collider-type", GOOD + '\n[[colliders]]\ntype = "torus"\n', [], "colliders[0]"),
     ("collider-missing-radius", GOOD + '\n[[colliders]]\ntype = "sphere"\ncenter = [0.5, 0.0, 0.2]\n', [],
      "colliders[0].radius: required key is missing"),
-    ("colour-out-of-range", GOOD.replace('name = "water"', 'name = "water"\ncolor = [0.2, 2.0, 0.5]'), [],
+    ("color-out-of-range", GOOD.replace('name = "water"', 'name = "water"\ncolor = [0.2, 2.0, 0.5]'), [],
      "fluids[0].color[1]: expected less than or equal to 1"),
     ("unreadable-toml", GOOD.replace("[sim]", "[sim"), [], "not valid TOML"),
     ("missing-file", None, [], "job file not found"),

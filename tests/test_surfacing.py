@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from solver.backend import init_taichi
+from conftest import tiny_spec
 
 R_PART = 0.005           # particle radius, m
 CELL = 0.75 * R_PART     # grid cell, m
@@ -13,8 +13,8 @@ CENTRE = np.array([0.31, 0.22, 0.17])
 
 
 @pytest.fixture(scope="module", autouse=True)
-def taichi_cpu():
-    init_taichi("cpu", 0)
+def _taichi(taichi_cpu):
+    pass
 
 
 def ball(radius=0.06, velocity=(1.0, -2.0, 0.5)):
@@ -32,10 +32,10 @@ def ball(radius=0.06, velocity=(1.0, -2.0, 0.5)):
 
 @pytest.fixture(scope="module")
 def sphere_mesh():
-    from surfacing.reconstruct import colour_field, marching_cubes
+    from surfacing.reconstruct import color_field, marching_cubes
 
     pos, vel, vol, r_eq = ball()
-    field = colour_field(pos, vel, vol, CELL, SUPPORT)
+    field = color_field(pos, vel, vol, CELL, SUPPORT)
     return field, marching_cubes(field, 0.5), r_eq
 
 
@@ -136,10 +136,10 @@ def test_sparse_field_is_the_sph_sum_at_every_node(kernel):
     (nodes of blocks that were not allocated must be zero), and only the blocks near particles
     are allocated."""
     from solver.kernels import DENSITY_KERNELS as KERNELS, w_np
-    from surfacing.reconstruct import colour_field
+    from surfacing.reconstruct import color_field
 
     pos, vel, vol = _clump_and_stray()
-    field = colour_field(pos, vel, vol, CELL, SUPPORT, kernel=kernel)
+    field = color_field(pos, vel, vol, CELL, SUPPORT, kernel=kernel)
     dense, index0 = field.dense()
     expect = np.zeros(dense.shape)             # numpy scatter, in float64, over each support cube
     reach = int(np.ceil(SUPPORT / CELL))
@@ -156,8 +156,8 @@ def test_sparse_field_is_the_sph_sum_at_every_node(kernel):
     np.testing.assert_allclose(dense, expect, atol=2e-5)
     box_blocks = np.prod(field.blocks.max(0) - field.blocks.min(0) + 1)
     assert field.n_blocks < box_blocks / 20, f"{field.n_blocks} blocks of a {box_blocks}-block box"
-    again = colour_field(pos, vel, vol, CELL, SUPPORT, kernel=kernel)
-    assert np.array_equal(again.colour, field.colour), "the scatter must not depend on thread timing"
+    again = color_field(pos, vel, vol, CELL, SUPPORT, kernel=kernel)
+    assert np.array_equal(again.color, field.color), "the scatter must not depend on thread timing"
 
 
 @pytest.mark.parametrize("iso", [0.3, 0.5])
@@ -166,9 +166,9 @@ def test_block_marching_cubes_equals_marching_cubes_on_the_dense_grid(sphere_mes
     scikit-image's (Lewiner) on the dense array (these fields have no ambiguous faces)."""
     from skimage.measure import marching_cubes as mc
 
-    from surfacing.reconstruct import colour_field, marching_cubes
+    from surfacing.reconstruct import color_field, marching_cubes
 
-    for field in (sphere_mesh[0], colour_field(*_clump_and_stray(), CELL, SUPPORT)):
+    for field in (sphere_mesh[0], color_field(*_clump_and_stray(), CELL, SUPPORT)):
         dense, index0 = field.dense()
         verts, faces, _n, _v = mc(np.pad(dense, 1), level=iso, allow_degenerate=True)
         ref = np.round((verts - 1 + index0) * CELL, 6)
@@ -231,17 +231,18 @@ def test_marching_cubes_on_noise():
     import pyvista as pv
     from skimage.measure import marching_cubes as mc
 
-    from surfacing.reconstruct import B, Field, marching_cubes
+    from surfacing.grid import B, Field
+    from surfacing.reconstruct import marching_cubes
 
     rng = np.random.default_rng(7)
     blocks = np.argwhere(np.ones((3, 3, 3), bool)) + [5, -2, 0]
     dense = np.zeros((3 * B,) * 3, np.float32)          # a zero rim: the blocks hold the surface
     dense[1:-1, 1:-1, 1:-1] = rng.random((3 * B - 2,) * 3)
-    colour = np.zeros((len(blocks) + 1, B, B, B), np.float32)
+    color = np.zeros((len(blocks) + 1, B, B, B), np.float32)
     for n, b in enumerate(blocks - blocks.min(0)):
-        colour[n] = dense[b[0] * B:(b[0] + 1) * B, b[1] * B:(b[1] + 1) * B, b[2] * B:(b[2] + 1) * B]
+        color[n] = dense[b[0] * B:(b[0] + 1) * B, b[1] * B:(b[1] + 1) * B, b[2] * B:(b[2] + 1) * B]
     lookup = np.arange(len(blocks), dtype=np.int32).reshape(3, 3, 3)
-    field = Field(colour, blocks, lookup, blocks.min(0), CELL)
+    field = Field(color, blocks, lookup, blocks.min(0), CELL)
     got, dense0 = field.dense()
     np.testing.assert_array_equal(got, dense)
 
@@ -260,31 +261,32 @@ def test_velocity_band_is_the_full_velocity_field_there():
     """Velocities are splatted only into the band of blocks the surface crosses, from only the
     particles that reach it; there they equal the velocity field computed from all particles
     on all blocks."""
-    from surfacing.reconstruct import colour_field
+    from surfacing.reconstruct import color_field
     from surfacing.splat import Splat
 
     pos, vel, vol = _clump_and_stray()
-    field = colour_field(pos, vel, vol, CELL, SUPPORT, iso=0.5)
+    field = color_field(pos, vel, vol, CELL, SUPPORT, iso=0.5)
     assert 0 < len(field.velocity_ids) < field.n_blocks
-    full = Splat(pos, vol, CELL, SUPPORT).velocity(vel, np.arange(field.n_blocks), field.colour)
+    full = Splat(pos, vol, CELL, SUPPORT).velocity(vel, np.arange(field.n_blocks), field.color)
     np.testing.assert_allclose(field.velocity[:-1], full[field.velocity_ids], rtol=1e-5, atol=1e-6)
     assert np.abs(full[field.velocity_ids]).max() > 0.1
 
 
 def test_particles_spread_too_far_is_one_clear_error():
-    from surfacing.reconstruct import GridTooLarge, colour_field
+    from surfacing.grid import GridTooLarge
+    from surfacing.reconstruct import color_field
 
     pos = np.array([[0.0, 0.0, 0.0], [400.0, 400.0, 400.0]], np.float32)
     with pytest.raises(GridTooLarge, match="surface.cell_size"):
-        colour_field(pos, None, np.full(2, 1e-6, np.float32), CELL, SUPPORT)
+        color_field(pos, None, np.full(2, 1e-6, np.float32), CELL, SUPPORT)
 
 
 def test_field_without_velocity():
     from surfacing import vdb
-    from surfacing.reconstruct import colour_field, marching_cubes
+    from surfacing.reconstruct import color_field, marching_cubes
 
     pos, _vel, vol, _ = ball(radius=0.03)
-    field = colour_field(pos, None, vol, CELL, SUPPORT)
+    field = color_field(pos, None, vol, CELL, SUPPORT)
     mesh = marching_cubes(field, 0.5)
     assert field.velocity is None and len(mesh.faces) > 0 and not mesh.velocity.any()
     grids = {g.name: g for g in vdb.build_grids(field, mesh, 1, 0.0, 3.0)}
@@ -310,12 +312,13 @@ def _trilinear(acc, xform, points):
 
 @pytest.fixture(scope="module")
 def vdb_file(sphere_mesh, tmp_path_factory):
+    from pipeline.formats import write_vdb
     from surfacing import vdb
 
     field, mesh, _ = sphere_mesh
     path = tmp_path_factory.mktemp("vdb") / "ball.0007.vdb"
     grids = vdb.build_grids(field, mesh, frame=7, time_s=0.25, half_width=3.0)
-    vdb.write(path, grids)
+    write_vdb(path, grids)
     return path, grids
 
 
@@ -366,18 +369,17 @@ def test_empty_frame_writes_empty_mesh_and_grids(tmp_path, caplog):
 
     from pipeline.spec import ShotSpec
     from surfacing import vdb
-    from surfacing.reconstruct import read_mesh, write_mesh
-    from surfacing.stage import surface_frame
+    from pipeline.formats import read_mesh, write_mesh, write_vdb
+    from pipeline.stages.surface import surface_frame
 
-    spec = ShotSpec.model_validate({"shot": {"name": "t"}, "fluids": (
-        {"name": "w", "blocks": ({"min": (0, 0, 0), "max": (0.1, 0.1, 0.1)},)},)})
+    spec = ShotSpec.model_validate(tiny_spec(sim={"particle_radius": 0.01}))
     data = {k: np.zeros((0, 3) if k in ("position", "velocity") else 0, np.float32)
             for k in ("position", "velocity", "density", "pressure")}
     data.update(id=np.zeros(0, np.int32), fluid=np.zeros(0, np.int32))
     with caplog.at_level("WARNING", logger="sphshot"):
         field, mesh, _ = surface_frame(spec, data, {"particle_radius": 0.01}, 12)
     assert "frame 0012: surfacing: no particles" in caplog.text
-    vdb.write(tmp_path / "e.vdb", vdb.build_grids(field, mesh, 12, 0.5, 3.0))
+    write_vdb(tmp_path / "e.vdb", vdb.build_grids(field, mesh, 12, 0.5, 3.0))
     grids, _ = ov.readAll(str(tmp_path / "e.vdb"))
     assert {g.name for g in grids} == {"surface", "density", "velocity"}
     assert all(g.activeVoxelCount() == 0 for g in grids)
@@ -387,7 +389,7 @@ def test_empty_frame_writes_empty_mesh_and_grids(tmp_path, caplog):
 
 @pytest.mark.parametrize("fmt,keeps_velocity", [("ply", True), ("obj", False), ("vtu", True)])
 def test_mesh_formats_keep_normals(sphere_mesh, tmp_path, fmt, keeps_velocity):
-    from surfacing.reconstruct import read_mesh, write_mesh
+    from pipeline.formats import read_mesh, write_mesh
 
     _field, mesh, _ = sphere_mesh
     path = tmp_path / f"m.{fmt}"

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .cache import atomic_path
-from .errors import StageError
-from .particles import read_frame
+from ..cache import atomic_path
+from ..errors import StageError
+from ..formats import read_frame, read_mesh
 
 log = logging.getLogger("sphshot")
 
@@ -87,7 +87,7 @@ class FrameRenderer:
         pv, r = self.pv, self.spec.render
         lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
         centre, size = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
-        from .spec import Light
+        from ..spec import Light
 
         rig = r.lights or (     # key, fill and rim around the domain
             Light(position=tuple(centre + size * np.array([1.2, 2.0, 1.5])), intensity=0.9, color=(1.0, 0.97, 0.92)),
@@ -118,14 +118,13 @@ class FrameRenderer:
                 out.append((cloud, dict(scalars="speed", cmap="viridis", clim=(0.0, spec.expected_max_speed()),
                                         show_scalar_bar=False)))
             else:
-                colours = np.array([f.color for f in spec.fluids], np.float32)[data["fluid"]]
-                cloud["rgb"] = (colours * 255).astype(np.uint8)
+                colors = np.array([f.color for f in spec.fluids], np.float32)[data["fluid"]]
+                cloud["rgb"] = (colors * 255).astype(np.uint8)
                 out.append((cloud, dict(scalars="rgb", rgb=True)))
             for mesh, kw in out:
                 kw.update(render_points_as_spheres=True,
                           point_size=max(2.0, self._pixels_per_metre() * 2 * spec.sim.particle_radius))
             return out
-        from surfacing.reconstruct import read_mesh
 
         mat = spec.render.material
         for key, path in paths.surface_meshes(frame).items():
@@ -135,9 +134,9 @@ class FrameRenderer:
             poly = pv.PolyData.from_regular_faces(m.points, m.faces)
             poly.point_data["Normals"] = m.normals
             poly.point_data.active_normals_name = "Normals"
-            colour = mat.color or (spec.fluids[[f.name for f in spec.fluids].index(key)].color
+            color = mat.color or (spec.fluids[[f.name for f in spec.fluids].index(key)].color
                                    if key is not None else spec.fluids[0].color)
-            out.append((poly, dict(color=colour, pbr=True, metallic=mat.metallic, roughness=mat.roughness,
+            out.append((poly, dict(color=color, pbr=True, metallic=mat.metallic, roughness=mat.roughness,
                                    opacity=mat.opacity, smooth_shading=True)))
         return out
 

@@ -1,36 +1,46 @@
-"""The surface stage: one .vdb and one mesh (or one per fluid) per sim frame."""
+"""The surface stage: one .vdb and one mesh (or one per fluid) per sim frame.
+
+The spec becomes surfacing's parameters here (surface_params), and the surfacer's errors
+become one-line stage errors.
+"""
 from __future__ import annotations
 
 import logging
 
 import numpy as np
 
-from pipeline.cache import atomic_path
-from pipeline.errors import StageError
-from pipeline.particles import read_frame
+from solver.backend import BackendUnavailable, init_taichi
+from surfacing.grid import SurfacingError
+from surfacing.mesh import Mesh
+from surfacing.reconstruct import SurfaceParams, particle_volumes, reconstruct
+
+from ..errors import StageError
+from ..formats import read_frame, write_mesh, write_vdb
 
 log = logging.getLogger("sphshot")
 
 
+def surface_params(spec) -> SurfaceParams:
+    s = spec.surface
+    return SurfaceParams(cell=spec.surface_cell_m, kernel_radius=spec.surface_kernel_radius_m, iso=s.iso,
+                         kernel=s.kernel, smoothing_iterations=s.smoothing_iterations, decimate=s.decimate)
+
+
 def surface_frame(spec, data: dict, attrs: dict, frame: int):
     """Build (field, mesh, {fluid: mesh}) for one frame of particles."""
-    from .reconstruct import Mesh, colour_field, particle_volumes, surface_mesh
-
-    pos = data["position"]
-    if len(pos) == 0:
+    position = data["position"]
+    if len(position) == 0:
         log.warning("frame %04d: surfacing: no particles; writing an empty mesh and empty grids", frame)
         return None, Mesh.empty(), {f.name: Mesh.empty() for f in spec.fluids}
-    vol = particle_volumes(data, attrs)
-    cell, support, s = spec.surface_cell, spec.surface_support, spec.surface
+    volume = particle_volumes(data, attrs)
+    params = surface_params(spec)
 
     def build(mask):
-        field = colour_field(pos[mask], data["velocity"][mask], vol[mask], cell, support, s.iso, s.kernel)
-        mesh = surface_mesh(field, s.iso, s.smoothing_iterations, s.decimate)
-        return field, mesh
+        return reconstruct(position[mask], data["velocity"][mask], volume[mask], params)
 
-    field, mesh = build(np.ones(len(pos), bool))
+    field, mesh = build(np.ones(len(position), bool))
     per_fluid = {}
-    if s.per_fluid:
+    if spec.surface.per_fluid:
         for fi, f in enumerate(spec.fluids):
             mask = data["fluid"] == fi
             per_fluid[f.name] = build(mask)[1] if mask.any() else Mesh.empty()
@@ -38,40 +48,33 @@ def surface_frame(spec, data: dict, attrs: dict, frame: int):
 
 
 def run(spec, frames, paths, progress) -> None:
-    from solver.backend import BackendUnavailable, init_taichi
-
     try:
         init_taichi(spec.sim.backend, spec.sim.threads)
     except BackendUnavailable as exc:
-        raise StageError(str(exc)) from None
+        raise StageError(str(exc)) from exc
     for frame in frames:
         # one function call a frame: its particles, fields and meshes are freed before the next
         progress.frame_done(frame, _write_frame(spec, frame, paths))
 
 
 def _write_frame(spec, frame: int, paths) -> list:
-    from . import vdb
-    from .reconstruct import GridTooLarge, write_mesh
+    from surfacing import vdb     # pyopenvdb: only where grids are written
 
     src = paths.sim_frame(frame)
     try:
         data, attrs = read_frame(src)
     except OSError as exc:
-        raise StageError(f"frame {frame:04d}: surfacing: cannot read {src}: {exc}") from None
+        raise StageError(f"frame {frame:04d}: surfacing: cannot read {src}: {exc}") from exc
     try:
         field, mesh, per_fluid = surface_frame(spec, data, attrs, frame)
-    except GridTooLarge as exc:
-        raise StageError(f"frame {frame:04d}: surfacing: {exc}") from None
+    except SurfacingError as exc:
+        raise StageError(f"frame {frame:04d}: surfacing: {exc}") from exc
     written = []
     if paths.vdb:
         grids = vdb.build_grids(field, mesh, frame, float(attrs.get("time", spec.frame_time(frame))),
                                 spec.surface.half_width, extra_surfaces=per_fluid.items(),
                                 which=spec.surface.grids)
-        with atomic_path(paths.surface_vdb(frame)) as tmp:
-            vdb.write(tmp, grids)
-        written.append(paths.surface_vdb(frame))
+        written.append(write_vdb(paths.surface_vdb(frame), grids))
     for key, path in paths.surface_meshes(frame).items():
-        with atomic_path(path) as tmp:
-            write_mesh(tmp, mesh if key is None else per_fluid[key], spec.surface.format)
-        written.append(path)
+        written.append(write_mesh(path, mesh if key is None else per_fluid[key], spec.surface.format))
     return written

@@ -1,0 +1,100 @@
+"""What is on disk: the files the stages write and read, in one place.
+
+- Sim frames and checkpoints (HDF5). Frame datasets: position (N,3) f32 m, velocity (N,3) f32
+  m/s, density (N,) f32 kg/m^3, pressure (N,) f32 Pa, id (N,) i32, fluid (N,) i32. Attributes:
+  frame, time (s), particle_radius (m), kernel_radius (m), fluid_names, fluid_rest_density
+  (kg/m^3), fluid_mass (kg), plus the solver's counters. Checkpoints add the solver's exact
+  state (half-step velocity, last acceleration, particle order) and its time-step controller.
+- Surface meshes: PLY keeps normals (nx, ny, nz) and velocity (vx, vy, vz) as vertex
+  properties; OBJ keeps normals; VTU keeps both as point arrays.
+- OpenVDB files: the grids surfacing.vdb builds.
+
+Every writer publishes atomically (cache.atomic_path): a file exists under its final name only
+once it is complete. The user's input meshes (mesh colliders) are read by pipeline/meshes.py.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from surfacing.mesh import Mesh
+
+from .cache import atomic_path
+
+FRAME_DATASETS = {"position": np.float32, "velocity": np.float32, "density": np.float32,
+                  "pressure": np.float32, "id": np.int32, "fluid": np.int32}
+
+
+# ---------------------------------------------------------------------------- sim frames (HDF5)
+def write_h5(final: Path, datasets: dict[str, np.ndarray], attrs: dict) -> Path:
+    with atomic_path(final) as tmp:
+        with h5py.File(tmp, "w") as f:
+            for k, v in datasets.items():
+                f.create_dataset(k, data=v)
+            for k, v in attrs.items():
+                f.attrs[k] = v
+    return final
+
+
+def write_frame(final: Path, data: dict[str, np.ndarray], attrs: dict) -> Path:
+    return write_h5(final, {k: np.asarray(data[k], dtype=t) for k, t in FRAME_DATASETS.items()}, attrs)
+
+
+def read_h5(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+    with h5py.File(path, "r") as f:
+        data = {k: f[k][()] for k in f.keys()}
+        attrs = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in f.attrs.items()}
+    attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in attrs.items()}
+    if "fluid_names" in attrs:
+        attrs["fluid_names"] = [n.decode() if isinstance(n, bytes) else str(n) for n in attrs["fluid_names"]]
+    return data, attrs
+
+
+read_frame = read_h5
+
+
+# ------------------------------------------------------------------------------ surface meshes
+def write_mesh(final: Path, mesh: Mesh, fmt: str) -> Path:
+    """Publish a Mesh as PLY, OBJ or VTU (see the module docstring)."""
+    import meshio
+
+    cells = [("triangle", mesh.faces.astype(np.int32))]
+    if fmt == "ply":
+        pd = {"nx": mesh.normals[:, 0], "ny": mesh.normals[:, 1], "nz": mesh.normals[:, 2],
+              "vx": mesh.velocity[:, 0], "vy": mesh.velocity[:, 1], "vz": mesh.velocity[:, 2]}
+    elif fmt == "obj":
+        pd = {"obj:vn": mesh.normals}
+    else:
+        pd = {"Normals": mesh.normals, "velocity": mesh.velocity}
+    with atomic_path(final) as tmp:
+        meshio.write(str(tmp), meshio.Mesh(mesh.points, cells, point_data=pd), file_format=fmt)
+    return final
+
+
+def read_mesh(path: Path) -> Mesh:
+    """A Mesh from a file write_mesh wrote."""
+    import meshio
+
+    m = meshio.read(str(path))
+    faces = m.cells_dict.get("triangle", np.zeros((0, 3), np.int32))
+    pd = m.point_data
+    if "nx" in pd:
+        normals = np.stack([pd["nx"], pd["ny"], pd["nz"]], 1)
+        vel = np.stack([pd["vx"], pd["vy"], pd["vz"]], 1)
+    else:
+        normals = pd.get("Normals", pd.get("obj:vn", np.zeros_like(m.points)))
+        vel = pd.get("velocity", np.zeros_like(m.points))
+    return Mesh(np.asarray(m.points, np.float32), np.asarray(faces, np.int32),
+                np.asarray(normals, np.float32), np.asarray(vel, np.float32))
+
+
+# ------------------------------------------------------------------------------------ OpenVDB
+def write_vdb(final: Path, grids) -> Path:
+    """Publish OpenVDB grids (pyopenvdb grid objects) as one .vdb file."""
+    import pyopenvdb as vdb
+
+    with atomic_path(final) as tmp:
+        vdb.write(str(tmp), grids=grids)
+    return final

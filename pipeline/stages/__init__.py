@@ -1,0 +1,67 @@
+"""What a stage is, said once: the cache, runner, executors, CLI and exports all read STAGES.
+
+A stage's module holds ``run(spec, frames, paths, progress)``, which reads the upstream stage's
+per-frame files through `paths`, publishes its own files atomically and calls
+``progress.frame_done(frame, files)`` once per finished frame, and optionally
+``finalize(spec, paths, force)`` (movie, contact sheet) once every frame of the shot is valid.
+Per-frame stages (surface, render) can be handed any subset of frames in any chunking, which
+is what the executors do; the sim is sequential and always runs as one task.
+
+Stage modules are imported lazily, so that `sphshot validate` and `status` stay light.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from typing import Any, Callable
+
+
+@dataclass(frozen=True)
+class Stage:
+    name: str
+    upstream: str | None        # the stage whose per-frame files this one reads
+    module: str                 # holds run() and maybe finalize()
+    per_frame: bool             # frames are independent of each other (can fan out)
+    frame_files: Callable       # (paths, frame) -> every file the stage owns for that frame
+    hashed: Callable            # spec -> the spec sections its output depends on
+    format_version: int         # bump when the files or the algorithm change incompatibly
+
+    def _mod(self):
+        return importlib.import_module(self.module)
+
+    @property
+    def run(self) -> Callable:
+        return self._mod().run
+
+    @property
+    def finalize(self) -> Callable | None:
+        """Optional step after every frame of the shot is valid (movie, contact sheet)."""
+        return getattr(self._mod(), "finalize", None)
+
+
+def _sim_sections(spec) -> dict[str, Any]:
+    return {"shot": {"frame_start": spec.shot.frame_start, "fps": spec.shot.fps},
+            "sim": spec.sim.model_dump(exclude={"backend", "threads"}),
+            "domain": spec.domain.model_dump(),
+            "fluids": [f.model_dump() for f in spec.fluids],
+            "colliders": [c.model_dump() for c in spec.colliders],
+            "meshes": spec.mesh_hashes()}
+
+
+def _surface_files(paths, frame: int) -> list:
+    return ([paths.surface_vdb(frame)] if paths.vdb else []) + list(paths.surface_meshes(frame).values())
+
+
+STAGES: dict[str, Stage] = {s.name: s for s in (
+    Stage("sim", None, "pipeline.stages.sim", per_frame=False,
+          frame_files=lambda paths, frame: [paths.sim_frame(frame)],
+          hashed=_sim_sections, format_version=2),
+    Stage("surface", "sim", "pipeline.stages.surface", per_frame=True,
+          frame_files=_surface_files,
+          hashed=lambda spec: {"surface": spec.surface.model_dump()}, format_version=1),
+    Stage("render", "surface", "pipeline.stages.render", per_frame=True,
+          frame_files=lambda paths, frame: [paths.render_frame(frame)],
+          hashed=lambda spec: {"render": spec.render.model_dump()}, format_version=1),
+)}
+"""The stages in the order they run; each one's upstream comes before it."""
+

@@ -1,0 +1,169 @@
+"""The sim stage: run the solver through the shot's frames, writing frames and checkpoints.
+
+The spec becomes the solver's parameters here (solver_params, fluid_blocks), and the solver's
+errors become one-line stage errors. Resume: the stage starts from the latest checkpoint at or
+before the first frame it must write (or from the initial fill), so a killed run continues
+where its last checkpoint left it.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import signal
+import time
+
+import numpy as np
+
+from solver.backend import BackendUnavailable, init_taichi
+from solver.errors import NoParticles, TooLarge, Unstable
+from solver.meshsdf import sample_sdf
+from solver.params import Block, Collider, Fluid, SolverParams
+
+from ..errors import Interrupted, StageError
+from ..formats import read_h5, write_frame, write_h5
+
+log = logging.getLogger("sphshot")
+_STOP = {"signal": None}
+FEWER = "use fewer particles (a larger sim.particle_radius or smaller fluid blocks)"
+
+
+def _request_stop(signum, _frame):
+    _STOP["signal"] = signal.Signals(signum).name
+
+
+def solver_params(spec) -> SolverParams:
+    """The solver's parameters for a shot: every length in metres, each mesh collider's signed
+    distance sampled where particles can meet it."""
+    sim = spec.sim
+    colliders = []
+    for ci, col in enumerate(spec.colliders):
+        common = {"restitution": col.restitution, "friction": col.friction,
+                  "container": col.mode == "container"}
+        if col.type == "sphere":
+            colliders.append(Collider("sphere", (*col.center, col.radius), **common))
+        elif col.type == "box":
+            colliders.append(Collider("box", (*col.min, *col.max), **common))
+        elif col.type == "capsule":
+            colliders.append(Collider("capsule", (*col.a, *col.b, col.radius), **common))
+        else:
+            verts, tris = spec.collider_mesh(ci)
+            lo, hi = spec.sdf_box(verts, col)
+            grid = sample_sdf(verts, tris, lo, hi, spec.collider_voxel_m(col), depth=spec.sdf_pad(col))
+            colliders.append(Collider("mesh", **common, sdf=grid))
+    return SolverParams(
+        particle_radius=sim.particle_radius, kernel_radius=spec.kernel_radius_m,
+        fluids=tuple(Fluid(f.rest_density, f.viscosity, f.surface_tension) for f in spec.fluids),
+        speed_of_sound=sim.speed_of_sound or 10.0 * spec.expected_max_speed(),
+        gravity=tuple(sim.gravity), domain_min=tuple(spec.domain.min), domain_max=tuple(spec.domain.max),
+        domain_restitution=spec.domain.restitution, domain_friction=spec.domain.friction,
+        colliders=tuple(colliders), gamma=sim.gamma, cfl=sim.cfl, max_dt=sim.max_dt,
+        surface_threshold=sim.surface_threshold, density_kernel=sim.kernels.density,
+        pressure_kernel=sim.kernels.pressure)
+
+
+def fluid_blocks(spec) -> list[Block]:
+    """Every fluid block of the shot, in the job file's order."""
+    return [Block(fi, b.min, b.max, b.velocity) for fi, f in enumerate(spec.fluids) for b in f.blocks]
+
+
+def frame_attrs(spec, params: SolverParams, frame: int, solver) -> dict:
+    return {"frame": frame, "time": spec.frame_time(frame), "particle_radius": spec.sim.particle_radius,
+            "kernel_radius": spec.kernel_radius_m, "fluid_names": [f.name for f in spec.fluids],
+            "fluid_rest_density": params.fluid_table[:, 1], "fluid_mass": params.fluid_table[:, 0],
+            "steps": solver.steps, "speed_of_sound": params.speed_of_sound}
+
+
+def check_stable(spec, params: SolverParams, frame: int, data: dict) -> None:
+    """Stop with a clear message when the state has blown up; frames before stay on disk."""
+    where = f"frame {frame:04d}: sim unstable"
+    if not np.isfinite(data["position"]).all() or not np.isfinite(data["velocity"]).all():
+        raise StageError(f"{where}: NaN/inf in particle state; lower sim.cfl or sim.max_dt")
+    lo, hi = np.array(spec.domain.min), np.array(spec.domain.max)
+    out = ((data["position"] < lo - 1e-4) | (data["position"] > hi + 1e-4)).any(axis=1)
+    if out.any():
+        raise StageError(f"{where}: {int(out.sum())} particle(s) escaped the domain; lower sim.cfl")
+    rho0 = params.fluid_table[data["fluid"], 1]
+    ratio = float(np.max(data["density"] / rho0)) if len(rho0) else 1.0
+    if ratio > spec.sim.max_density_ratio:
+        raise StageError(f"{where}: density reached {ratio:.2f}x rest (bound sim.max_density_ratio = "
+                         f"{spec.sim.max_density_ratio}); raise sim.speed_of_sound or lower sim.cfl")
+
+
+def build_solver(spec, paths, first_frame: int):
+    """A solver at the latest checkpoint before first_frame, or at the initial fill."""
+    from solver.fill import fill_blocks
+    from solver.sph import SPHSolver
+
+    params = solver_params(spec)
+    ckpts = [c for c in paths.checkpoints() if c < first_frame]
+    if ckpts:
+        frame = ckpts[-1]
+        data, attrs = read_h5(paths.checkpoint(frame))
+        solver = SPHSolver(params, data, time_s=attrs["time"], step=attrs["step"], dt_prev=attrs["dt_prev"])
+        log.info("sim: resuming from checkpoint at frame %d (t = %.4f s, step %d)", frame,
+                 attrs["time"], attrs["step"])
+        return params, solver, frame
+    solver = SPHSolver(params, fill_blocks(params, fluid_blocks(spec)))
+    log.info("sim: %d particles, h = %.4g m, c = %.3g m/s", solver.n, params.h, params.speed_of_sound)
+    return params, solver, None
+
+
+def write_checkpoint(paths, frame: int, solver) -> None:
+    write_h5(paths.checkpoint(frame), solver.state(), {"frame": frame, **solver.controller()})
+
+
+def run(spec, frames, paths, progress) -> None:
+    try:
+        init_taichi(spec.sim.backend, spec.sim.threads)
+    except BackendUnavailable as exc:
+        raise StageError(str(exc)) from exc
+
+    todo = sorted(frames)
+    last = todo[-1]
+    try:
+        params, solver, ckpt_frame = build_solver(spec, paths, todo[0])
+    except TooLarge as exc:
+        raise StageError(f"sim: {exc}; {FEWER}") from exc
+    except NoParticles as exc:
+        raise StageError(f"sim: {exc}") from exc
+    start = spec.shot.frame_start if ckpt_frame is None else ckpt_frame
+    if ckpt_frame is None:
+        data = solver.snapshot()
+        if start in todo or not paths.sim_frame(start).exists():
+            progress.frame_done(start, [write_frame(paths.sim_frame(start), data,
+                                                    frame_attrs(spec, params, start, solver))])
+        write_checkpoint(paths, start, solver)
+
+    previous = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGUSR1)}
+    for s in previous:
+        signal.signal(s, _request_stop)
+    _STOP["signal"] = None
+    wall0, steps0 = time.perf_counter(), solver.steps
+    try:
+        for frame in range(start + 1, last + 1):
+            try:
+                done = solver.advance_to(spec.frame_time(frame), should_stop=lambda: _STOP["signal"] is not None)
+            except Unstable as exc:
+                raise StageError(f"frame {frame:04d}: sim unstable: {exc}; lower sim.cfl or sim.max_dt") from exc
+            except TooLarge as exc:     # particles crowding together: usually a blow-up too
+                raise StageError(f"frame {frame:04d}: sim: {exc}; {FEWER}") from exc
+            if not done:
+                # checkpoint named after the last finished frame, holding the exact mid-frame state
+                write_checkpoint(paths, frame - 1, solver)
+                raise Interrupted(f"sim: stopped by {_STOP['signal']} during frame {frame:04d}; "
+                                  f"checkpoint written, run again to resume")
+            data = solver.snapshot()
+            check_stable(spec, params, frame, data)
+            if frame in todo or not paths.sim_frame(frame).exists():
+                path = write_frame(paths.sim_frame(frame), data, frame_attrs(spec, params, frame, solver))
+                progress.frame_done(frame, [path])
+            if (frame - spec.shot.frame_start) % spec.shot.checkpoint_every == 0 or frame == last:
+                write_checkpoint(paths, frame, solver)
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+    wall = time.perf_counter() - wall0
+    steps = solver.steps - steps0
+    if steps:
+        log.info("sim: %d steps, %.3g particle-steps/s, %.3g simulated s per wall s", steps,
+                 solver.n * steps / wall, (solver.time - spec.frame_time(start)) / wall)

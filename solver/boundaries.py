@@ -1,0 +1,243 @@
+"""Boundaries: the domain box's walls and the colliders (sphere, box, capsule, closed mesh).
+
+Walls and colliders act on the fluid as boundary samples on the fill lattice: the missing
+number density and grad-W sums of the samples beyond a wall are tabulated once
+(kernels.ghost_tables) and read here by the distance to the wall. Colliders give a signed
+distance (positive outside the solid) and an outward normal; particles are projected out of
+them in the integrator.
+"""
+import numpy as np
+import taichi as ti
+
+from .params import BOX, C_FRIC, C_REST, C_SIGN, CAPSULE, MESH, SPHERE, SolverParams
+from .types import F1, F2, I1, V3, Box, ivec3, vec3
+
+
+@ti.func
+def table_row(t: ti.template(), row: ti.i32, d: ti.f32, h: ti.f32) -> ti.f32:
+    """Linear interpolation in row `row` of a table sampled on [0, h]."""
+    n = t.shape[1]
+    x = ti.math.clamp(d / h, 0.0, 1.0) * (n - 1)
+    i = ti.min(ti.cast(ti.floor(x), ti.i32), n - 2)
+    f = x - i
+    return t[row, i] * (1.0 - f) + t[row, i + 1] * f
+
+
+@ti.func
+def hydrostatic_wall(a: ti.f32, n, g, mom: ti.template(), h: ti.f32):
+    """sum_b (g . x_bi) grad W_ib over the samples beyond a plane wall at distance a with
+    inward normal n: the pressure difference a hydrostatic wall adds (Adami et al. 2012)."""
+    gn = g.dot(n)
+    return table_row(mom, 0, a, h) * gn * n + table_row(mom, 1, a, h) * (g - gn * n)
+
+
+@ti.func
+def table3(t: ti.template(), kind: ti.i32, a: ti.f32, b: ti.f32, c: ti.f32, h: ti.f32) -> ti.f32:
+    """Trilinear interpolation in ghost table `kind` (0 H, 1 Q, 2 O) sampled on [0, h]^3."""
+    n = t.shape[1]
+    u = ti.math.clamp(vec3(a, b, c) / h, 0.0, 1.0) * (n - 1)
+    i = ti.min(ti.cast(ti.floor(u), ti.i32), n - 2)
+    f = u - i
+    out = 0.0
+    for dx, dy, dz in ti.static(ti.ndrange(2, 2, 2)):
+        wgt = (f.x if dx else 1.0 - f.x) * (f.y if dy else 1.0 - f.y) * (f.z if dz else 1.0 - f.z)
+        out += wgt * t[kind, i.x + dx, i.y + dy, i.z + dz]
+    return out
+
+
+@ti.func
+def nearest_walls(x, dmin, dmax, h: ti.f32):
+    """Per axis, the distance a (h if none is within h) to the nearer box wall and the sign s of
+    its inward normal (+1 low wall, -1 high wall, 0 none)."""
+    a = vec3(h)
+    s = vec3(0.0)
+    for ax in ti.static(range(3)):
+        lo = x[ax] - dmin[ax]
+        hi = dmax[ax] - x[ax]
+        if lo <= hi and lo < h:
+            a[ax], s[ax] = ti.max(lo, 0.0), 1.0
+        elif hi < lo and hi < h:
+            a[ax], s[ax] = ti.max(hi, 0.0), -1.0
+    return a, s
+
+
+@ti.func
+def domain_walls(x, dmin, dmax, h: ti.f32, T: ti.template(), G: ti.template()):
+    """Missing number density, and missing grad-W sum (pointing into the fluid), near the box
+    walls; exact at edges and corners by inclusion-exclusion (see kernels.ghost_tables)."""
+    a, s = nearest_walls(x, dmin, dmax, h)
+    dens = 0.0
+    grad = vec3(0.0)
+    if s.norm_sqr() > 0:
+        dens = (table3(T, 0, a.x, 0.0, 0.0, h) + table3(T, 0, a.y, 0.0, 0.0, h) + table3(T, 0, a.z, 0.0, 0.0, h)
+                - table3(T, 1, a.x, a.y, 0.0, h) - table3(T, 1, a.x, a.z, 0.0, h) - table3(T, 1, a.y, a.z, 0.0, h)
+                + table3(T, 2, a.x, a.y, a.z, h))
+        grad = s * vec3(
+            table3(G, 0, a.x, 0.0, 0.0, h) - table3(G, 1, a.x, a.y, 0.0, h)
+            - table3(G, 1, a.x, a.z, 0.0, h) + table3(G, 2, a.x, a.y, a.z, h),
+            table3(G, 0, a.y, 0.0, 0.0, h) - table3(G, 1, a.y, a.x, 0.0, h)
+            - table3(G, 1, a.y, a.z, 0.0, h) + table3(G, 2, a.y, a.x, a.z, h),
+            table3(G, 0, a.z, 0.0, 0.0, h) - table3(G, 1, a.z, a.x, 0.0, h)
+            - table3(G, 1, a.z, a.y, 0.0, h) + table3(G, 2, a.z, a.x, a.y, h))
+    return dens, grad
+
+
+@ti.func
+def mesh_sdf(prm: ti.template(), sdf: ti.template(), k: ti.i32, p):
+    """Trilinear signed distance of mesh collider k, and the normalised gradient of that
+    trilinear field. Beyond the grid, the distance to the grid's box is added to the value at
+    the nearest grid point (the grid reaches a kernel radius past the mesh, so this is far)."""
+    origin = vec3(prm[k, 0], prm[k, 1], prm[k, 2])
+    inv = 1.0 / prm[k, 3]
+    dims = ivec3(ti.cast(prm[k, 4], ti.i32), ti.cast(prm[k, 5], ti.i32), ti.cast(prm[k, 6], ti.i32))
+    base = ti.cast(prm[k, 7], ti.i32)
+    g = (p - origin) * inv
+    gc = ti.math.clamp(g, 0.0, ti.cast(dims - 1, ti.f32))
+    i = ti.min(ti.cast(ti.floor(gc), ti.i32), dims - 2)
+    f = gc - ti.cast(i, ti.f32)
+    phi = 0.0
+    grad = vec3(0.0)
+    for dx, dy, dz in ti.static(ti.ndrange(2, 2, 2)):
+        v = sdf[base + (i.x + dx) * dims.y * dims.z + (i.y + dy) * dims.z + i.z + dz]
+        wx = f.x if dx else 1.0 - f.x
+        wy = f.y if dy else 1.0 - f.y
+        wz = f.z if dz else 1.0 - f.z
+        phi += wx * wy * wz * v
+        grad += v * vec3((1.0 if dx else -1.0) * wy * wz, (1.0 if dy else -1.0) * wx * wz,
+                         (1.0 if dz else -1.0) * wx * wy)
+    n = vec3(0.0, 1.0, 0.0)
+    outside = (g - gc) / inv
+    off = outside.norm()
+    if off > 0.0:
+        phi += off
+        n = outside / off
+    elif grad.norm_sqr() > 1e-12:
+        n = grad.normalized()
+    return phi, n
+
+
+@ti.func
+def collider_sdf(kind: ti.i32, prm: ti.template(), sdf: ti.template(), k: ti.i32, p):
+    """Signed distance (positive outside the solid) and outward unit normal of collider k."""
+    phi = 0.0
+    n = vec3(0.0, 1.0, 0.0)
+    if kind == SPHERE:
+        c = vec3(prm[k, 0], prm[k, 1], prm[k, 2])
+        d = p - c
+        L = d.norm()
+        phi = L - prm[k, 3]
+        if L > 1e-9:
+            n = d / L
+    elif kind == BOX:
+        lo = vec3(prm[k, 0], prm[k, 1], prm[k, 2])
+        hi = vec3(prm[k, 3], prm[k, 4], prm[k, 5])
+        c = 0.5 * (lo + hi)
+        half = 0.5 * (hi - lo)
+        d = p - c
+        q = ti.abs(d) - half
+        outside = ti.max(q, 0.0)
+        L = outside.norm()
+        if L > 0.0:
+            phi = L
+            n = outside * ti.math.sign(d) / L
+        else:
+            # inside: nearest face
+            phi = ti.max(q.x, ti.max(q.y, q.z))
+            axis = 0
+            if q.y >= q.x and q.y >= q.z:
+                axis = 1
+            elif q.z >= q.x and q.z >= q.y:
+                axis = 2
+            n = vec3(0.0)
+            n[axis] = 1.0 if d[axis] >= 0 else -1.0
+    elif kind == MESH:
+        phi, n = mesh_sdf(prm, sdf, k, p)
+    else:  # capsule: segment a-b with radius
+        a = vec3(prm[k, 0], prm[k, 1], prm[k, 2])
+        b = vec3(prm[k, 3], prm[k, 4], prm[k, 5])
+        ab = b - a
+        t = ti.math.clamp((p - a).dot(ab) / ti.max(ab.dot(ab), 1e-12), 0.0, 1.0)
+        d = p - (a + t * ab)
+        L = d.norm()
+        phi = L - prm[k, 6]
+        if L > 1e-9:
+            n = d / L
+    s = prm[k, C_SIGN]   # containers keep particles inside: flip the field
+    return phi * s, n * s
+
+
+@ti.kernel
+def k_clearance(position: V3, ctype: I1, cprm: F2, sdf: F1, out: F1):
+    for i in position:
+        best = 1e30
+        for k in range(ctype.shape[0]):
+            phi, _n = collider_sdf(ctype[k], cprm, sdf, k, position[i])
+            best = ti.min(best, phi)
+        out[i] = best
+
+
+
+def collider_clearance(params: SolverParams, points: np.ndarray) -> np.ndarray:
+    """Each point's smallest signed distance to the colliders (negative: on the solid side)."""
+    n = max(len(points), 1)
+    position = ti.Vector.ndarray(3, ti.f32, shape=n)
+    position.from_numpy(np.resize(np.asarray(points, np.float32), (n, 3)))
+    out = ti.ndarray(ti.f32, shape=n)
+    k_clearance(position, *collider_arrays(params), out)
+    return out.to_numpy()[:len(points)]
+
+
+def collider_arrays(params: SolverParams):
+    """(types, parameter table, distance grids): the colliders as the kernels take them."""
+    out = []
+    for a, dtype in zip(params.collider_tables, (ti.i32, ti.f32, ti.f32)):
+        nd = ti.ndarray(dtype, a.shape)
+        nd.from_numpy(a)
+        out.append(nd)
+    return tuple(out)
+
+
+@ti.kernel
+def k_collide(position: V3, velocity: V3, box: Box, ctype: I1, cprm: F2, sdf: F1):
+    """Keep particle centres `box.keep` outside every collider and inside the domain box:
+    project them to that distance, reflect the normal velocity with restitution and apply
+    Coulomb friction to the tangential part."""
+    keep = box.keep
+    for i in position:
+        x = position[i]
+        v = velocity[i]
+        for k in range(ctype.shape[0]):
+            phi, n = collider_sdf(ctype[k], cprm, sdf, k, x)
+            if phi < keep:
+                x += (keep - phi) * n
+                vn = v.dot(n)
+                if vn < 0.0:
+                    vt = v - vn * n
+                    vtn = vt.norm()
+                    scale = 0.0
+                    if vtn > 1e-12:
+                        scale = ti.max(0.0, 1.0 - cprm[k, C_FRIC] * (1.0 + cprm[k, C_REST]) * ti.abs(vn) / vtn)
+                    v = vt * scale - cprm[k, C_REST] * vn * n
+        # the domain box, the same way
+        for ax in ti.static(range(3)):
+            lo = box.lo[ax] + keep
+            hi = box.hi[ax] - keep
+            hit = 0.0
+            if x[ax] < lo:
+                x[ax] = lo
+                hit = -1.0
+            elif x[ax] > hi:
+                x[ax] = hi
+                hit = 1.0
+            if hit != 0.0 and v[ax] * hit > 0.0:
+                vn = v[ax]
+                vt = v
+                vt[ax] = 0.0
+                vtn = vt.norm()
+                scale = 0.0
+                if vtn > 1e-12:
+                    scale = ti.max(0.0, 1.0 - box.friction * (1.0 + box.restitution) * ti.abs(vn) / vtn)
+                v = vt * scale
+                v[ax] = -box.restitution * vn
+        position[i] = x
+        velocity[i] = v

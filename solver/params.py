@@ -1,0 +1,128 @@
+"""What the solver is given: plain parameters in SI units (metres, seconds, kg/m^3, Pa s, N/m).
+
+`SolverParams` is the one input of a solver. The tables the kernels read (per-fluid constants,
+the collider table, the lattice moments) are derived from it once, on first use.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from . import kernels as K
+from .meshsdf import SDFGrid
+
+SPHERE, BOX, CAPSULE, MESH = 0, 1, 2, 3
+COLLIDER_TYPES = {"sphere": SPHERE, "box": BOX, "capsule": CAPSULE, "mesh": MESH}
+# Fluid table columns: particle mass, rest density rho0, Tait stiffness B, viscosity mu, tension sigma
+F_MASS, F_RHO0, F_B, F_MU, F_SIGMA = range(5)
+# Collider table columns: 8 shape params, restitution, friction, sign (+1 obstacle, -1 container).
+# A mesh's shape params: its distance grid's origin (3), voxel size, node counts (3) and offset
+# into the flat array of all mesh grids (exact in float32 up to 2^24).
+C_REST, C_FRIC, C_SIGN = 8, 9, 10
+
+
+@dataclass(frozen=True)
+class Fluid:
+    rest_density: float                # kg/m^3
+    viscosity: float = 0.0             # Pa s (Müller's particle-scale viscosity)
+    surface_tension: float = 0.0       # N/m
+
+
+@dataclass(frozen=True)
+class Block:
+    """An axis-aligned box of fluid `fluid` (index into SolverParams.fluids), filled on the lattice."""
+    fluid: int
+    min: tuple[float, float, float]
+    max: tuple[float, float, float]
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Collider:
+    """A solid: `kind` sphere (shape: centre, radius), box (min, max), capsule (a, b, radius) or
+    mesh (`sdf`: its signed distance grid). A container keeps the fluid inside instead of out."""
+    kind: str
+    shape: tuple[float, ...] = ()
+    restitution: float = 0.0
+    friction: float = 0.2
+    container: bool = False
+    sdf: SDFGrid | None = None
+
+
+@dataclass(frozen=True)
+class SolverParams:
+    """Everything a solver needs. Every length is in metres."""
+    particle_radius: float
+    kernel_radius: float                        # support h of every kernel
+    fluids: tuple[Fluid, ...]
+    speed_of_sound: float                       # m/s, sets the Tait stiffness B = rho0 c^2 / gamma
+    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
+    domain_min: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    domain_max: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    domain_restitution: float = 0.0
+    domain_friction: float = 0.1
+    colliders: tuple[Collider, ...] = ()
+    gamma: float = 7.0
+    cfl: float = 0.4
+    max_dt: float = 1.0 / 240.0
+    surface_threshold: float = 0.4              # |grad c| h above which surface tension acts
+    density_kernel: str = "poly6"
+    pressure_kernel: str = "spiky"
+
+    @property
+    def spacing(self) -> float:
+        """Fill lattice spacing, 2 particle radii."""
+        return 2.0 * self.particle_radius
+
+    @property
+    def h(self) -> float:
+        """The kernel support (the papers' h)."""
+        return self.kernel_radius
+
+    @property
+    def density_kind(self) -> int:
+        return K.DENSITY_KERNELS[self.density_kernel]
+
+    @property
+    def pressure_kind(self) -> int:
+        return K.PRESSURE_KERNELS[self.pressure_kernel]
+
+    @cached_property
+    def lattice_density(self) -> float:
+        """Number density sum_j W of the fill lattice: the rest state."""
+        return K.lattice_number_density(self.density_kind, self.h, self.spacing)
+
+    @cached_property
+    def grad_scale(self) -> float:
+        """1 / the pressure kernel gradient's first moment on the lattice (see kernels)."""
+        return 1.0 / K.lattice_gradient_moment(self.pressure_kind, self.h, self.spacing, self.lattice_density)
+
+    @cached_property
+    def fluid_table(self) -> np.ndarray:
+        """(F, 5) float32: mass, rho0, B, mu, sigma (columns F_*)."""
+        c = self.speed_of_sound
+        return np.array([[f.rest_density / self.lattice_density, f.rest_density,
+                          f.rest_density * c * c / self.gamma, f.viscosity, f.surface_tension]
+                         for f in self.fluids], dtype=np.float32)
+
+    @cached_property
+    def collider_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(types (K,) int32, parameters (K, 11) float32, mesh distance grids flat float32)."""
+        cf, ct, grids = [], [], []
+        offset = 0
+        for col in self.colliders:
+            if col.kind == "mesh":
+                g = col.sdf
+                shape = [*g.origin, g.voxel, *g.phi.shape, offset]
+                offset += g.phi.size
+                grids.append(g.phi.ravel())
+            else:
+                shape = list(col.shape) + [0.0] * (8 - len(col.shape))
+            cf.append(shape + [col.restitution, col.friction, -1.0 if col.container else 1.0])
+            ct.append(COLLIDER_TYPES[col.kind])
+        if not cf:  # Taichi ndarrays cannot be empty: one inert collider far away
+            cf, ct = [[1e9, 1e9, 1e9, 1.0, 0, 0, 0, 0, 0, 0, 1.0]], [SPHERE]
+        return (np.asarray(ct, np.int32), np.asarray(cf, np.float32),
+                np.concatenate(grids or [np.zeros(1)]).astype(np.float32))

@@ -1,0 +1,137 @@
+"""The physics kernels of weakly compressible SPH (Müller, Charypar & Gross 2003; Tait's
+equation of state after Becker & Teschner 2007). Each kernel is one phase of a step, pure: its
+arrays and constants come in as arguments.
+
+  density     delta_i = sum_j W(x_ij) (+ walls), rho_i = m_i delta_i (Solenthaler & Pajarola
+              2008: exact at interfaces of fluids of different rho0);
+              p_i = B ((rho_i / rho0)^gamma - 1), clamped at 0, B = rho0 c^2 / gamma
+  forces      a_i = -1/m_i sum_j (p_i/delta_i^2 + p_j/delta_j^2) grad W_ij        (pressure)
+                    + 1/m_i sum_j mu_ij (v_j - v_i) / (delta_i delta_j) lap W_ij   (viscosity)
+                    - sigma lap c_i n_i / |n_i| / rho_i                            (tension)
+                    + g + the walls' pressure (boundary samples, kernels.ghost_tables)
+  integrate   leapfrog: v_{n+1/2} = v_{n-1/2} + a_n (dt_{n-1/2} + dt_{n+1/2}) / 2,
+              x_{n+1} = x_n + v_{n+1/2} dt_{n+1/2}
+"""
+import taichi as ti
+
+from . import kernels as K
+from .boundaries import collider_sdf, domain_walls, hydrostatic_wall, nearest_walls, table3
+from .params import F_B, F_MASS, F_MU, F_RHO0, F_SIGMA
+from .types import F1, F2, F4, I1, V3, Box, Consts, raise_max, vec3
+
+
+@ti.kernel
+def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure: F1,
+              verlet: I1, verlet_count: I1, near: I1, near_count: I1, cap: ti.i32,
+              c: Consts, box: Box, ftab: F2, ghost_t: F4, ghost_g: F4,
+              ctype: I1, cprm: F2, sdf: F1, dkern: ti.template()):
+    """Density and pressure from the Verlet list; also copies the entries now within h (and not
+    coincident) into the exact list `near` that the force pass reads, without branching."""
+    h = c.h
+    for i in position:
+        xi = position[i]
+        s = K.w_r2(dkern, 0.0, h)                 # the particle itself
+        base = i * cap
+        k = 0
+        for m in range(verlet_count[i]):
+            j = verlet[base + m]
+            r2 = (xi - position[j]).norm_sqr()
+            s += K.w_r2(dkern, r2, h)
+            near[base + k] = j
+            k += ti.select((r2 < h * h) & (r2 > 1e-18), 1, 0)
+        near_count[i] = k
+        # walls: the domain's six planes and the colliders, as boundary samples on the fill
+        # lattice. They take the particle's own compression, so the share f of the kernel they
+        # cover scales the fluid's sum up: delta = sum_fluid / (1 - f). Exact at rest and
+        # under uniform (e.g. hydrostatic) compression; f is capped for particles in corners.
+        wall, _g = domain_walls(xi, box.lo, box.hi, h, ghost_t, ghost_g)
+        for ci in range(ctype.shape[0]):
+            phi, _n = collider_sdf(ctype[ci], cprm, sdf, ci, xi)
+            if phi < h:
+                wall += table3(ghost_t, 0, ti.max(phi, 0.0), 0.0, 0.0, h)   # planar approximation
+        s = s / ti.max(1.0 - wall / c.lattice, 0.1)
+        f = fluid[i]
+        r = ftab[f, F_MASS] * s
+        number_density[i] = s
+        density[i] = r
+        pressure[i] = ti.max(ftab[f, F_B] * ((r / ftab[f, F_RHO0]) ** c.gamma - 1.0), 0.0)
+
+
+@ti.kernel
+def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1,
+             density: F1, pressure: F1, near: I1, near_count: I1, cap: ti.i32,
+             c: Consts, box: Box, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2,
+             ctype: I1, cprm: F2, sdf: F1, stats: F1, pkern: ti.template(), tension: ti.template()):
+    """Accelerations (pressure, viscosity, surface tension, gravity, walls); raises stats[0] to
+    the largest speed and stats[1] to the largest acceleration."""
+    h = c.h
+    for i in position:
+        xi, vi = position[i], velocity[i]
+        fi = fluid[i]
+        mi = ftab[fi, F_MASS]
+        di = number_density[i]
+        pi_ = pressure[i] / (di * di)
+        a_p = vec3(0.0)
+        a_v = vec3(0.0)
+        n = vec3(0.0)
+        lap = K.lap_poly6(0.0, h) / di      # color field includes the particle itself
+        base = i * cap
+        for m in range(near_count[i]):        # the pairs within h (see k_density)
+            j = near[base + m]
+            rv = xi - position[j]
+            r = ti.sqrt(rv.norm_sqr())
+            dj = number_density[j]
+            a_p -= (pi_ + pressure[j] / (dj * dj)) * K.grad_w(pkern, rv, r, h)
+            mu = 0.5 * (ftab[fi, F_MU] + ftab[fluid[j], F_MU])
+            a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
+            if ti.static(tension):
+                n += K.grad_w(K.POLY6, rv, r, h) / dj
+                lap += K.lap_poly6(r, h) / dj
+        a = (c.grad_scale * a_p + a_v) / mi + c.gravity
+        # walls push with the particle's own pressure term only, p_i/delta_i^2 (Akinci et al.
+        # 2012): boundary samples are fixed and carry no energy of their own, so this is the
+        # energy-consistent force. Mirroring the pressure (2 p_i/delta_i^2) pumps energy into
+        # fluid resting on a wall.
+        wall = c.grad_scale * pi_ / mi * (di / c.lattice)   # samples are as compressed as the particle
+        _d, wg = domain_walls(xi, box.lo, box.hi, h, ghost_t, ghost_g)
+        a += wall * wg
+        # the samples' hydrostatic pressure differences: -rho_i/(m_i delta_i^2) sum_b dp_b grad W
+        hyd = vec3(0.0)
+        da, ds = nearest_walls(xi, box.lo, box.hi, h)
+        for ax in ti.static(range(3)):
+            if ds[ax] != 0.0:
+                e = vec3(0.0)
+                e[ax] = ds[ax]
+                hyd += hydrostatic_wall(da[ax], e, c.gravity, ghost_mom, h)
+        for k in range(ctype.shape[0]):
+            phi, nk = collider_sdf(ctype[k], cprm, sdf, k, xi)
+            if phi < h:
+                a += wall * table3(ghost_g, 0, ti.max(phi, 0.0), 0.0, 0.0, h) * nk
+                hyd += hydrostatic_wall(ti.max(phi, 0.0), nk, c.gravity, ghost_mom, h)
+        a -= c.grad_scale * density[i] / (mi * di * di) * (di / c.lattice) * hyd
+        if ti.static(tension):
+            sigma = ftab[fi, F_SIGMA]
+            nn = n.norm()
+            if sigma > 0.0 and nn * h > c.threshold:
+                a -= sigma * lap * n / nn / density[i]
+        acceleration[i] = a
+        vn, an = vi.norm(), a.norm()
+        raise_max(stats, 0, vn)
+        raise_max(stats, 1, an)
+
+
+@ti.kernel
+def k_integrate(position: V3, velocity: V3, acceleration: V3, kick: ti.f32, dt: ti.f32):
+    """Leapfrog: kick the half-step velocity by `kick` = (dt_{n-1/2} + dt_{n+1/2}) / 2 of the
+    acceleration, then drift the position by dt."""
+    for i in position:
+        v = velocity[i] + kick * acceleration[i]
+        position[i] = position[i] + dt * v
+        velocity[i] = v
+
+
+@ti.kernel
+def k_synced_velocity(velocity: V3, acceleration: V3, half_dt: ti.f32, out: V3):
+    """Velocity at the step's time: the half-step velocity plus half a step of acceleration."""
+    for i in velocity:
+        out[i] = velocity[i] + half_dt * acceleration[i]
