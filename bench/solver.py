@@ -31,8 +31,13 @@ sys.path[0] = str(ROOT)   # this file is bench/solver.py: keep it from shadowing
 ANCHOR = ROOT.parent / "shared" / "anchors" / "solver" / "bench_splishsplash.sh"
 
 
-def scene(particles: int, radius: float):
-    """The anchor tank, with a water block of about `particles` particles at the left end."""
+def scene(particles: int, radius: float, solver: str = "dfsph", cfl: float = 0.8,
+          max_density_error: float = 0.0005):
+    """The anchor tank, with a water block of about `particles` particles at the left end.
+
+    DFSPH runs with the anchor's settings (../shared/anchors/solver/dambreak_dfsph.json):
+    mean density error 0.05 %, divergence error 0.1 %, and its CFL step (cflFactor 1: dt =
+    0.4 x 2r / v_max, i.e. sim.cfl = 0.8 radii a step)."""
     from pipeline.spec import ShotSpec
 
     d = 2 * radius
@@ -44,7 +49,8 @@ def scene(particles: int, radius: float):
     ext = (min(nx * d, 1.5), min(ny * d, 0.6), min(nz * d, 0.59))
     return ShotSpec.model_validate({
         "shot": {"name": "bench", "frame_end": 13, "fps": 24.0},
-        "sim": {"particle_radius": radius},
+        "sim": {"particle_radius": radius, "solver": solver,
+                **({"cfl": cfl, "max_density_error": max_density_error} if solver == "dfsph" else {})},
         "domain": {"min": (0.0, 0.0, -0.3), "max": (1.6, 0.67, 0.3)},
         "fluids": ({"name": "water", "viscosity": 1.0,
                     "blocks": ({"min": (0.0, 0.0, -0.3), "max": (ext[0], ext[1], -0.3 + ext[2])},)},)})
@@ -54,15 +60,13 @@ def child(args) -> None:
     from solver.backend import init_taichi
 
     arch = init_taichi(args.backend, args.threads)
-    from pipeline.stages.sim import fluid_blocks, solver_params
-    from solver.fill import fill_blocks
-    from solver.sph import SPHSolver
+    from pipeline.stages.sim import initial_state, make_solver, solver_params
     import taichi as ti
 
-    spec = scene(args.particles, args.radius)
+    spec = scene(args.particles, args.radius, args.solver)
     params = solver_params(spec)
     t0 = time.perf_counter()
-    s = SPHSolver(params, fill_blocks(params, fluid_blocks(spec)))
+    s = make_solver(spec, params, initial_state(spec, params))
     s.step()                      # compile and warm up
     ti.sync()
     init = time.perf_counter() - t0
@@ -74,12 +78,16 @@ def child(args) -> None:
     wall = time.perf_counter() - t1
     steps = s.steps - steps0
     pos = s.position.to_numpy()
-    result = {"solver": f"sphshot-{arch}", "particles": s.n, "steps": steps,
+    result = {"solver": f"sphshot-{args.solver}-{arch}", "particles": s.n, "steps": steps,
               "sim_time_s": round(s.time - time0, 4), "wall_s": round(wall, 3), "init_s": round(init, 2),
               "ms_per_step": round(1000 * wall / steps, 3),
               "particle_steps_per_s": round(s.n * steps / wall, 1),
               "sim_s_per_wall_s": round((s.time - time0) / wall, 5),
               "front_x_m": round(float(pos[:, 0].max()), 4)}
+    report = s.frame_report()
+    if report:
+        result["avg_pressure_iters"] = round(report["density_iterations"], 2)
+        result["avg_divergence_iters"] = round(report["divergence_iterations"], 2)
     if args.phases:
         result["phase_s"] = {k: round(v, 2) for k, v in s.timer.totals.items()}
     print("RESULT " + json.dumps(result), flush=True)
@@ -87,7 +95,8 @@ def child(args) -> None:
 
 def run_sphshot(args) -> dict:
     cmd = [sys.executable, __file__, "--child", "--stop-at", str(args.stop_at), "--backend", args.backend,
-           "--threads", str(args.threads), "--particles", str(args.particles), "--radius", str(args.radius)]
+           "--threads", str(args.threads), "--particles", str(args.particles), "--radius", str(args.radius),
+           "--solver", args.solver]
     if args.phases:
         cmd.append("--phases")
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
@@ -127,6 +136,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=0)
     ap.add_argument("--particles", type=int, default=50_000)
     ap.add_argument("--radius", type=float, default=0.006)
+    ap.add_argument("--solver", default="dfsph", choices=("dfsph", "wcsph"), help="sphshot's solver")
     ap.add_argument("--anchor-solvers", default="wcsph,dfsph")
     ap.add_argument("--phases", action="store_true", help="time each step phase (adds syncs)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
@@ -142,7 +152,7 @@ def main() -> None:
     if args.only != "sphshot":
         rows += run_anchor(args)
     keys = ["particles", "steps", "sim_time_s", "wall_s", "ms_per_step", "particle_steps_per_s",
-            "sim_s_per_wall_s", "init_s", "peak_rss_mb"]
+            "sim_s_per_wall_s", "init_s", "peak_rss_mb", "avg_pressure_iters", "avg_divergence_iters"]
     for r in rows:
         print(f"{r['solver']:22s} " + " ".join(f"{k}={r.get(k)}" for k in keys)
               + (f" phases={r['phase_s']}" if "phase_s" in r else ""))

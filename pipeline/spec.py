@@ -61,27 +61,52 @@ class Shot(Strict):
 
 # ---------------------------------------------------------------------------------------- sim
 class Kernels(Strict):
-    """Which smoothing kernel serves which term (Müller et al. 2003 by default)."""
-    density: Literal["poly6", "cubic", "wendland"] = "poly6"
-    pressure: Literal["spiky", "cubic", "wendland"] = "spiky"
+    """Which smoothing kernel serves which term. Unset: the solver's own (WCSPH: Müller et al.
+    2003's poly6 and spiky; DFSPH: the cubic spline for both, as it needs one kernel for the
+    density and its gradient)."""
+    density: Literal["poly6", "cubic", "wendland"] | None = None
+    pressure: Literal["spiky", "cubic", "wendland"] | None = None
     viscosity: Literal["viscosity"] = "viscosity"
     surface_tension: Literal["poly6"] = "poly6"
 
 
 class Sim(Strict):
+    solver: Literal["dfsph", "wcsph"] = "dfsph"      # Bender & Koschier 2017, or Müller 2003
     backend: Literal["auto", "cpu", "cuda", "vulkan"] = "auto"
     threads: Annotated[int, Field(ge=0)] = 0          # CPU threads, 0 = every allowed core
     particle_radius: Pos = 0.01                      # m; lattice spacing is 2 radii
     kernel_radius: Annotated[float, Field(gt=1, le=8)] = 4.0  # support h, in particle radii
     gravity: Vec3 = (0.0, -9.81, 0.0)                # m/s^2, any constant acceleration
-    speed_of_sound: Annotated[float, Field(ge=0)] = 0.0  # m/s; 0 = 10x expected max speed
+    speed_of_sound: Annotated[float, Field(ge=0)] = 0.0  # m/s (wcsph); 0 = 10x expected max speed
     max_speed: Annotated[float, Field(ge=0)] = 0.0    # m/s expected; 0 = sqrt(2 g H) of the fluid
-    gamma: Pos = 7.0                                 # Tait exponent
-    cfl: Annotated[float, Field(gt=0, le=1)] = 0.4
+    gamma: Pos = 7.0                                 # Tait exponent (wcsph)
+    cfl: Annotated[float, Field(gt=0, le=1)] = 0.4    # wcsph: of h/2 at sound speed; dfsph: radii a step
+    max_density_error: Annotated[float, Field(gt=0, le=0.1)] = 0.001     # dfsph: mean compression
+    max_divergence_error: Annotated[float, Field(gt=0, le=0.1)] = 0.001  # dfsph: mean rate x dt
+    max_iterations: Annotated[int, Field(ge=1, le=10000)] = 100          # dfsph: per solve and step
     max_dt: Pos = 1.0 / 240.0                        # s
     surface_threshold: Pos = 0.4                     # |grad c| * h above which tension acts
     max_density_ratio: Annotated[float, Field(gt=1)] = 1.5  # instability guard on rho/rho0
     kernels: Kernels = Kernels()
+
+    @model_validator(mode="after")
+    def _one_kernel_for_dfsph(self):
+        k = self.kernels
+        given = {v for v in (k.density, k.pressure) if v is not None}
+        if self.solver == "dfsph" and (given - {"cubic", "wendland"} or len(given) > 1):
+            raise ValueError(f"kernels: dfsph takes one kernel, \"cubic\" or \"wendland\", for the density and "
+                             f"its gradient; got density = {k.density!r}, pressure = {k.pressure!r}")
+        return self
+
+    @property
+    def density_kernel(self) -> str:
+        default = "cubic" if self.solver == "dfsph" else "poly6"
+        return self.kernels.density or (self.kernels.pressure if self.solver == "dfsph" else None) or default
+
+    @property
+    def pressure_kernel(self) -> str:
+        default = "cubic" if self.solver == "dfsph" else "spiky"
+        return self.kernels.pressure or (self.kernels.density if self.solver == "dfsph" else None) or default
 
 
 class Domain(Strict):

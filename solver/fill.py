@@ -10,17 +10,20 @@ from .errors import NoParticles
 from .params import F_B, F_RHO0, Block, SolverParams
 
 
-def fill_blocks(params: SolverParams, blocks: Iterable[Block], settle: bool = True) -> dict[str, np.ndarray]:
+def fill_blocks(params: SolverParams, blocks: Iterable[Block], settle: bool = True,
+                compressible: bool = False) -> dict[str, np.ndarray]:
     """Initial particles: each block filled on a cubic lattice of spacing 2r, centred in it.
 
-    With `settle` (what a shot uses), and with gravity, each block starts in hydrostatic
-    equilibrium: the lattice is compressed along gravity to the Tait density
-    rho(d) = rho0 (1 + rho0 |g| d / B)^(1/gamma) at depth d below the block's top. Starting at
-    zero pressure instead, a resting column would drop until it is compressed and then breathe
-    acoustically for seconds (its long acoustic modes are barely damped), biasing every
-    pressure it reports. Also with `settle`, lattice sites closer than one particle radius to a
+    With `settle` (what a shot uses), lattice sites closer than one particle radius to a
     collider's solid side (inside an obstacle, outside a container) are left empty: blocks may
-    overlap colliders. Tests of other properties start from the plain lattice (settle=False).
+    overlap colliders. With `settle` and `compressible` (weakly compressible SPH), and with
+    gravity, each block also starts in hydrostatic equilibrium: the lattice is compressed along
+    gravity to the Tait density rho(d) = rho0 (1 + rho0 |g| d / B)^(1/gamma) at depth d below
+    the block's top. Starting at zero pressure instead, a resting column would drop until it is
+    compressed and then breathe acoustically for seconds (its long acoustic modes are barely
+    damped), biasing every pressure it reports. An incompressible solver (DFSPH) starts from the
+    lattice, which is at rest density. Tests of other properties start from the plain lattice
+    (settle=False).
 
     Raises NoParticles when nothing is left.
     """
@@ -34,7 +37,7 @@ def fill_blocks(params: SolverParams, blocks: Iterable[Block], settle: bool = Tr
         start = lo + 0.5 * ((hi - lo) - (n - 1) * d)
         axes = [start[k] + d * np.arange(n[k]) for k in range(3)]
         p = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-        if settle and gnorm > 0:
+        if settle and compressible and gnorm > 0:
             p = _hydrostatic(p, lo, hi, -g / gnorm, gnorm, params.fluid_table[b.fluid], params.gamma)
         position.append(p)
         velocity.append(np.broadcast_to(np.array(b.velocity), p.shape))

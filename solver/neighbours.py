@@ -132,3 +132,10 @@ def k_max_displacement(position: V3, ref: V3, out: F1):
     for i in position:
         raise_max(out, 0, (position[i] - ref[i]).norm())
 
+
+
+@ti.kernel
+def k_gather_f1(order: I1, src: F1, dst: F1):
+    """dst[s] = src[order[s]]: a per-particle float array follows the sort."""
+    for s in order:
+        dst[s] = src[order[s]]

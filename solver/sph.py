@@ -276,12 +276,22 @@ class SPHSolver:
     def snapshot(self) -> dict[str, np.ndarray]:
         """Frame data at the current time, ordered by particle id."""
         self.refresh_fields()
-        k_synced_velocity(self.velocity, self.acceleration, 0.5 * self.dt_prev, self.velocity_out)
+        velocity = self.output_velocity()
         ids = self.id.to_numpy()
         order = np.argsort(ids, kind="stable")
-        return {"position": self.position.to_numpy()[order], "velocity": self.velocity_out.to_numpy()[order],
+        return {"position": self.position.to_numpy()[order], "velocity": velocity.to_numpy()[order],
                 "density": self.density.to_numpy()[order], "pressure": self.pressure.to_numpy()[order],
                 "id": ids[order], "fluid": self.fluid.to_numpy()[order]}
+
+    def output_velocity(self):
+        """Velocity at the current time: the leapfrog's half-step velocity plus half a step of
+        the last acceleration."""
+        k_synced_velocity(self.velocity, self.acceleration, 0.5 * self.dt_prev, self.velocity_out)
+        return self.velocity_out
+
+    def frame_report(self) -> dict[str, float]:
+        """Solver figures for the frame just finished (none for WCSPH)."""
+        return {}
 
     def state(self) -> dict[str, np.ndarray]:
         """Full state in the solver's own order, for bit-exact checkpoints."""

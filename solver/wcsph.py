@@ -20,6 +20,17 @@ from .params import F_B, F_MASS, F_MU, F_RHO0, F_SIGMA
 from .types import F1, F2, F4, I1, V3, Box, Consts, raise_max, vec3
 
 
+@ti.func
+def color_tension(sigma: ti.f32, n, lap: ti.f32, rho: ti.f32, h: ti.f32, threshold: ti.f32):
+    """Müller et al. 2003's surface tension, -sigma lap(c) n / |n| / rho, from the color field's
+    gradient n and Laplacian; only where |n| h exceeds `threshold` (at the surface)."""
+    a = vec3(0.0)
+    nn = n.norm()
+    if sigma > 0.0 and nn * h > threshold:
+        a = -sigma * lap * n / nn / rho
+    return a
+
+
 @ti.kernel
 def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure: F1,
               verlet: I1, verlet_count: I1, near: I1, near_count: I1, cap: ti.i32,
@@ -110,10 +121,7 @@ def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_den
                 hyd += hydrostatic_wall(ti.max(phi, 0.0), nk, c.gravity, ghost_mom, h)
         a -= c.grad_scale * density[i] / (mi * di * di) * (di / c.lattice) * hyd
         if ti.static(tension):
-            sigma = ftab[fi, F_SIGMA]
-            nn = n.norm()
-            if sigma > 0.0 and nn * h > c.threshold:
-                a -= sigma * lap * n / nn / density[i]
+            a += color_tension(ftab[fi, F_SIGMA], n, lap, density[i], h, c.threshold)
         acceleration[i] = a
         vn, an = vi.norm(), a.norm()
         raise_max(stats, 0, vn)

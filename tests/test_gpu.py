@@ -17,30 +17,29 @@ pytestmark = [pytest.mark.gpu,
 BOULDER = Path(__file__).resolve().parents[1] / "jobs" / "assets" / "boulder.obj"
 
 
-def small_dambreak(mesh: bool = False):
+def small_dambreak(mesh: bool = False, solver: str = "dfsph"):
     colliders = ({"type": "mesh", "path": str(BOULDER), "scale": 0.1, "translate": (0.3, 0.03, 0.15)},) if mesh else ()
     return ShotSpec.model_validate(tiny_spec(((0, 0, 0), (0.2, 0.3, 0.3)), ((0, 0, 0), (0.6, 0.4, 0.3)),
-                                             name="g", colliders=colliders))
+                                             name="g", colliders=colliders, sim={"solver": solver}))
 
 
-def run_on(backend: str, t_end: float, mesh: bool = False):
+def run_on(backend: str, t_end: float, mesh: bool = False, solver: str = "dfsph"):
     from solver.backend import init_taichi
     init_taichi(backend, 1 if backend == "cpu" else 0)
-    from pipeline.stages.sim import fluid_blocks, solver_params
-    from solver.fill import fill_blocks
-    from solver.sph import SPHSolver
-    spec = small_dambreak(mesh)
+    from pipeline.stages.sim import initial_state, make_solver, solver_params
+    spec = small_dambreak(mesh, solver)
     params = solver_params(spec)
-    s = SPHSolver(params, fill_blocks(params, fluid_blocks(spec)))
+    s = make_solver(spec, params, initial_state(spec, params))
     s.advance_to(t_end)
     return s.snapshot()
 
 
-def test_cuda_matches_cpu_early_on():
+@pytest.mark.parametrize("solver", ["dfsph", "wcsph"])
+def test_cuda_matches_cpu_early_on(solver):
     """Before the flow turns chaotic (first 20 ms), CUDA and CPU agree to float32 round-off
-    amplified over ~100 steps: positions within 1e-4 of the particle radius scale (1e-6 m)."""
-    gpu = run_on("cuda", 0.02)
-    cpu = run_on("cpu", 0.02)
+    amplified over the steps (about 100 WCSPH, 5 DFSPH): positions within 1e-6 m."""
+    gpu = run_on("cuda", 0.02, solver=solver)
+    cpu = run_on("cpu", 0.02, solver=solver)
     np.testing.assert_allclose(gpu["position"], cpu["position"], atol=1e-6)
     np.testing.assert_allclose(gpu["density"], cpu["density"], rtol=1e-3)
 

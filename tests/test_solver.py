@@ -16,19 +16,27 @@ def _taichi(taichi_cpu):
     pass
 
 
+def wcsph_spec(*args, sim=None, **kw) -> dict:
+    """tiny_spec with the WCSPH solver (Müller et al. 2003), which these tests are about
+    (the collider tests run DFSPH too: sim={"solver": "dfsph"})."""
+    return tiny_spec(*args, sim={"solver": "wcsph", **(sim or {})}, **kw)
+
+
 def make_solver(spec_dict, mutate=None, settle=False):
-    """A solver for a spec; settle starts fluid blocks in hydrostatic equilibrium as the sim
-    stage does (tests of other properties start from the plain lattice)."""
-    from pipeline.stages.sim import fluid_blocks, solver_params
+    """A solver for a spec; settle starts fluid blocks as the sim stage does (WCSPH: in
+    hydrostatic equilibrium); tests of other properties start from the plain lattice."""
+    from pipeline.stages import sim
     from solver.fill import fill_blocks
-    from solver.sph import SPHSolver
 
     spec = ShotSpec.model_validate(spec_dict)
-    params = solver_params(spec)
-    state = fill_blocks(params, fluid_blocks(spec), settle=settle)
+    params = sim.solver_params(spec)
+    state = fill_blocks(params, sim.fluid_blocks(spec), settle=settle, compressible=spec.sim.solver == "wcsph")
     if mutate:
         mutate(state)
-    return spec, params, SPHSolver(params, state)
+    return spec, params, sim.make_solver(spec, params, state)
+
+
+BOTH = pytest.mark.parametrize("solver", ["wcsph", "dfsph"])
 
 
 def radial_integral(f, h, n=200001):
@@ -80,7 +88,7 @@ def test_taichi_kernels_match_numpy_and_gradients_are_odd(name):
 def test_ghost_tables_give_rest_density_at_walls_edges_and_corners():
     """A block filled on the lattice into a corner of the domain starts at rest density
     everywhere it touches a wall (the boundary sums complete the lattice)."""
-    spec, params, s = make_solver(tiny_spec(((0, 0, 0), (0.16, 0.16, 0.16)), ((0, 0, 0), (0.3, 0.3, 0.3))))
+    spec, params, s = make_solver(wcsph_spec(((0, 0, 0), (0.16, 0.16, 0.16)), ((0, 0, 0), (0.3, 0.3, 0.3))))
     d = s.snapshot()
     p = d["position"]
     touching = (p < 0.05 - 1e-6).sum(axis=1) >= 1        # within h of at least one wall...
@@ -100,7 +108,7 @@ def test_momentum_is_conserved_without_gravity_or_walls():
     def jitter(state):
         state["velocity"] = rng.normal(0.0, 0.2, state["velocity"].shape).astype(np.float32)
 
-    spec, params, s = make_solver(tiny_spec(((0.4, 0.4, 0.4), (0.6, 0.6, 0.6)), sim={"gravity": (0, 0, 0), "max_speed": 2.0},
+    spec, params, s = make_solver(wcsph_spec(((0.4, 0.4, 0.4), (0.6, 0.6, 0.6)), sim={"gravity": (0, 0, 0), "max_speed": 2.0},
                                             fluid={"viscosity": 2.0}), jitter)
     m = params.fluid_table[0, 0]
 
@@ -124,7 +132,7 @@ def test_overflowing_neighbour_lists_grow():
     within h + skin), the solver must notice the overflow, grow the lists and build them again:
     its state then equals, bit for bit, that of a solver whose lists were large enough from the
     start (one thread, so the grid order is the same)."""
-    spec_dict = tiny_spec(((0.0, 0.0, 0.0), (0.12, 0.2, 0.12)), ((0, 0, 0), (0.3, 0.3, 0.3)))
+    spec_dict = wcsph_spec(((0.0, 0.0, 0.0), (0.12, 0.2, 0.12)), ((0, 0, 0), (0.3, 0.3, 0.3)))
     _, _, roomy = make_solver(spec_dict)
     _, _, tight = make_solver(spec_dict)
     tight._grow_neighbours(8)
@@ -145,7 +153,7 @@ def test_verlet_lists_hold_every_pair_within_h_until_rebuilt():
     and float64 may disagree)."""
     from scipy.spatial import cKDTree
 
-    _, params, s = make_solver(tiny_spec(((0.0, 0.2, 0.0), (0.16, 0.4, 0.1)), ((0, 0, 0), (0.4, 0.5, 0.2))))
+    _, params, s = make_solver(wcsph_spec(((0.0, 0.2, 0.0), (0.16, 0.4, 0.1)), ((0, 0, 0), (0.4, 0.5, 0.2))))
     h = params.h
     checked = stale = 0
     while s.time < 0.25:
@@ -183,7 +191,7 @@ def resting_column():
     over several periods. Returns per-sample (mean density below the top layer, floor pressure
     extrapolated from the interior profile, rho g H)."""
     H, W = 0.3, 0.2
-    spec, params, s = make_solver(tiny_spec(((0, 0, 0), (W, H, W)), ((0, 0, 0), (W, H + 0.1, W)),
+    spec, params, s = make_solver(wcsph_spec(((0, 0, 0), (W, H, W)), ((0, 0, 0), (W, H + 0.1, W)),
                                             fluid={"viscosity": 3.0}), settle=True)
     s.advance_to(0.8)
     h, samples = params.h, []
@@ -225,7 +233,7 @@ def test_surface_tension_rounds_a_cube():
     """Without gravity, a cube under surface tension alone becomes rounder. Measure: corner
     prominence, max radius / rms radius about the centre: 1.73 for a solid cube, 1.29 for a
     ball (1.57 for this 10^3 lattice). It must close at least half the gap to a ball."""
-    spec, params, s = make_solver(tiny_spec(
+    spec, params, s = make_solver(wcsph_spec(
         ((0.1, 0.1, 0.1), (0.2, 0.2, 0.2)), ((0, 0, 0), (0.3, 0.3, 0.3)),
         sim={"particle_radius": 0.005, "gravity": (0, 0, 0), "max_speed": 0.5},
         fluid={"viscosity": 0.5, "surface_tension": 2.0}))
@@ -243,13 +251,16 @@ def test_surface_tension_rounds_a_cube():
 
 
 # -------------------------------------------------------------------------------- colliders
-def test_no_particle_inside_obstacles_or_outside_containers():
-    """A fast stream into a sphere, a box and a capsule inside a capsule container."""
-    spec, params, s = make_solver(tiny_spec(
+@BOTH
+def test_no_particle_inside_obstacles_or_outside_containers(solver):
+    """A fast stream (4 m/s, above the example shots' fastest) into a sphere, a box and a
+    capsule, for both solvers."""
+    spec, params, s = make_solver(wcsph_spec(
         ((0.02, 0.2, 0.1), (0.2, 0.4, 0.3)), ((0, 0, 0), (1.0, 0.6, 0.4)), velocity=(4.0, 0.0, 0.0),
         colliders=({"type": "sphere", "center": (0.45, 0.25, 0.2), "radius": 0.08},
                    {"type": "box", "min": (0.7, 0.0, 0.1), "max": (0.74, 0.3, 0.3)},
-                   {"type": "capsule", "a": (0.3, 0.05, 0.05), "b": (0.3, 0.05, 0.35), "radius": 0.03})))
+                   {"type": "capsule", "a": (0.3, 0.05, 0.05), "b": (0.3, 0.05, 0.35), "radius": 0.03}),
+        sim={"solver": solver}))
     worst = {"sphere": 0.0, "box": 0.0, "capsule": 0.0}
     for k in range(1, 13):
         s.advance_to(k / 48)
@@ -268,11 +279,12 @@ def test_no_particle_inside_obstacles_or_outside_containers():
         assert phi > -1e-5, f"a particle ended {-phi:.2e} m inside the {name}"
 
 
-def test_container_capsule_keeps_particles_inside():
-    spec, params, s = make_solver(tiny_spec(
+@BOTH
+def test_container_capsule_keeps_particles_inside(solver):
+    spec, params, s = make_solver(wcsph_spec(
         ((0.22, 0.3, 0.22), (0.38, 0.42, 0.38)), ((0, 0, 0), (0.6, 0.6, 0.6)),
         colliders=({"type": "capsule", "a": (0.3, 0.15, 0.3), "b": (0.3, 0.45, 0.3), "radius": 0.13,
-                    "mode": "container"},)))
+                    "mode": "container"},), sim={"solver": solver}))
     c = spec.colliders[0]
     a, b = np.array(c.a), np.array(c.b)
     for k in range(1, 9):
@@ -293,7 +305,7 @@ def test_a_blown_up_state_raises_instead_of_crawling():
         p = state["position"]
         state["position"] = (p.mean(0) + 0.01 * (p - p.mean(0))).astype(np.float32)
 
-    _spec, _params, s = make_solver(tiny_spec(((0.3, 0.1, 0.1), (0.5, 0.3, 0.3)), sim={"particle_radius": 0.02}),
+    _spec, _params, s = make_solver(wcsph_spec(((0.3, 0.1, 0.1), (0.5, 0.3, 0.3)), sim={"particle_radius": 0.02}),
                                     mutate=squeeze)
     with pytest.raises(Unstable, match="time step fell to"):
         s.advance_to(1 / 24)
@@ -310,8 +322,9 @@ def ball_mesh(path, nsub=4):
     return path
 
 
-def ball_spec(tmp_path, block, mode="obstacle", centre=(0.45, 0.25, 0.2), radius=0.08, velocity=(0.0, 0.0, 0.0)):
-    return tiny_spec(block, ((0, 0, 0), (1.0, 0.6, 0.4)), velocity=velocity,
+def ball_spec(tmp_path, block, mode="obstacle", centre=(0.45, 0.25, 0.2), radius=0.08, velocity=(0.0, 0.0, 0.0),
+              solver="wcsph"):
+    return wcsph_spec(block, ((0, 0, 0), (1.0, 0.6, 0.4)), velocity=velocity, sim={"solver": solver},
                      colliders=({"type": "mesh", "path": str(ball_mesh(tmp_path / "ball.obj")), "scale": radius,
                                  "translate": centre, "mode": mode},))
 
@@ -381,9 +394,11 @@ def _collider_normals(params, points):
     return out.to_numpy()
 
 
-def test_no_particle_inside_a_mesh_obstacle(tmp_path):
+@BOTH
+def test_no_particle_inside_a_mesh_obstacle(tmp_path, solver):
     """A fast stream into an icosphere mesh: the particles reach it and none ends inside."""
-    spec, params, s = make_solver(ball_spec(tmp_path, ((0.02, 0.2, 0.1), (0.2, 0.4, 0.3)), velocity=(4.0, 0.0, 0.0)))
+    spec, params, s = make_solver(ball_spec(tmp_path, ((0.02, 0.2, 0.1), (0.2, 0.4, 0.3)), velocity=(4.0, 0.0, 0.0),
+                                            solver=solver))
     c, R = np.array(spec.colliders[0].translate), spec.colliders[0].scale
     _sag, tol = ball_tolerance(spec)
     closest = np.inf
@@ -395,9 +410,10 @@ def test_no_particle_inside_a_mesh_obstacle(tmp_path):
     assert closest < spec.sim.particle_radius, f"the stream never reached the mesh (closest {closest:.3f} m)"
 
 
-def test_mesh_container_keeps_particles_inside(tmp_path):
+@BOTH
+def test_mesh_container_keeps_particles_inside(tmp_path, solver):
     spec, params, s = make_solver(ball_spec(tmp_path, ((0.4, 0.25, 0.15), (0.5, 0.3, 0.25)), mode="container",
-                                         centre=(0.45, 0.25, 0.2), radius=0.12))
+                                            centre=(0.45, 0.25, 0.2), radius=0.12, solver=solver))
     c, R = np.array(spec.colliders[0].translate), spec.colliders[0].scale
     _sag, tol = ball_tolerance(spec)
     for k in range(1, 9):
@@ -413,7 +429,7 @@ def test_fill_leaves_colliders_empty(tmp_path):
     from solver.fill import fill_blocks
 
     block = ((0.3, 0.1, 0.05), (0.6, 0.4, 0.35))
-    spec = ShotSpec.model_validate({**ball_spec(tmp_path, block), "sim": {"particle_radius": 0.01, "gravity": (0, 0, 0)}})
+    spec = ShotSpec.model_validate({**ball_spec(tmp_path, block), "sim": {"solver": "wcsph", "particle_radius": 0.01, "gravity": (0, 0, 0)}})
     params = solver_params(spec)
     full = fill_blocks(params, fluid_blocks(spec), settle=False)["position"]
     kept = fill_blocks(params, fluid_blocks(spec))["position"]
@@ -429,8 +445,10 @@ def test_fill_leaves_colliders_empty(tmp_path):
 
 
 # --------------------------------------------------------------------------- determinism
-def test_stop_and_resume_is_bit_identical_on_one_thread(job_copy):
-    """Frames after a resume from a checkpoint equal those of an uninterrupted run, bit for bit."""
+@pytest.mark.parametrize("solver", ["dfsph", "wcsph"])
+def test_stop_and_resume_is_bit_identical_on_one_thread(job_copy, solver):
+    """Frames after a resume from a checkpoint equal those of an uninterrupted run, bit for bit
+    (DFSPH's checkpoints keep its warm-start kappas for this)."""
     from pipeline.cache import ShotPaths
     from pipeline.progress import Progress
     from pipeline.formats import read_frame
@@ -438,7 +456,8 @@ def test_stop_and_resume_is_bit_identical_on_one_thread(job_copy):
     from pipeline.stages import sim as stage
 
     job = job_copy()
-    common = ["sim.particle_radius=0.02", "sim.threads=1", "shot.frame_end=8", "shot.checkpoint_every=3"]
+    common = ["sim.particle_radius=0.02", "sim.threads=1", "shot.frame_end=8", "shot.checkpoint_every=3",
+              f'sim.solver="{solver}"']
     whole = load_spec(job, common + ['shot.output="a"'])
     split = load_spec(job, common + ['shot.output="b"'])
     quiet = Progress(interactive=False, stream=open("/dev/null", "w"))

@@ -55,7 +55,7 @@ def _surface_files(paths, frame: int) -> list:
 STAGES: dict[str, Stage] = {s.name: s for s in (
     Stage("sim", None, "pipeline.stages.sim", per_frame=False,
           frame_files=lambda paths, frame: [paths.sim_frame(frame)],
-          hashed=_sim_sections, format_version=2),
+          hashed=_sim_sections, format_version=3),
     Stage("surface", "sim", "pipeline.stages.surface", per_frame=True,
           frame_files=_surface_files,
           hashed=lambda spec: {"surface": spec.surface.model_dump()}, format_version=1),

@@ -57,8 +57,8 @@ def solver_params(spec) -> SolverParams:
         gravity=tuple(sim.gravity), domain_min=tuple(spec.domain.min), domain_max=tuple(spec.domain.max),
         domain_restitution=spec.domain.restitution, domain_friction=spec.domain.friction,
         colliders=tuple(colliders), gamma=sim.gamma, cfl=sim.cfl, max_dt=sim.max_dt,
-        surface_threshold=sim.surface_threshold, density_kernel=sim.kernels.density,
-        pressure_kernel=sim.kernels.pressure)
+        surface_threshold=sim.surface_threshold, density_kernel=sim.density_kernel,
+        pressure_kernel=sim.pressure_kernel)
 
 
 def fluid_blocks(spec) -> list[Block]:
@@ -66,11 +66,43 @@ def fluid_blocks(spec) -> list[Block]:
     return [Block(fi, b.min, b.max, b.velocity) for fi, f in enumerate(spec.fluids) for b in f.blocks]
 
 
-def frame_attrs(spec, params: SolverParams, frame: int, solver) -> dict:
+def initial_state(spec, params: SolverParams) -> dict:
+    """The fluid blocks filled on the lattice (pre-compressed to hydrostatic density for the
+    weakly compressible solver), colliders cut out."""
+    from solver.fill import fill_blocks
+
+    return fill_blocks(params, fluid_blocks(spec), compressible=spec.sim.solver == "wcsph")
+
+
+def frame_attrs(spec, params: SolverParams, frame: int, solver, report: dict) -> dict:
+    """The sim frame's attributes: time, sizes, fluids, and the solver's figures for the frame
+    (DFSPH: iterations per step and final mean errors of both solves, with their bounds)."""
     return {"frame": frame, "time": spec.frame_time(frame), "particle_radius": spec.sim.particle_radius,
             "kernel_radius": spec.kernel_radius_m, "fluid_names": [f.name for f in spec.fluids],
             "fluid_rest_density": params.fluid_table[:, 1], "fluid_mass": params.fluid_table[:, 0],
-            "steps": solver.steps, "speed_of_sound": params.speed_of_sound}
+            "solver": spec.sim.solver, "steps": solver.steps, "speed_of_sound": params.speed_of_sound,
+            **report}
+
+
+def make_solver(spec, params: SolverParams, state: dict, **controller):
+    """The solver the spec names, on `state` (an initial fill or a checkpoint)."""
+    from solver.dfsph import DFSPHSolver
+    from solver.sph import SPHSolver
+
+    if spec.sim.solver == "dfsph":
+        return DFSPHSolver(params, state, **controller, max_density_error=spec.sim.max_density_error,
+                           max_divergence_error=spec.sim.max_divergence_error,
+                           max_iterations=spec.sim.max_iterations)
+    return SPHSolver(params, state, **controller)
+
+
+def log_frame(frame: int, report: dict) -> None:
+    if report:
+        log.info("sim: frame %04d: %d steps; density solve %.1f iterations a step, error %.3g%% "
+                 "(bound %.3g%%); divergence solve %.1f, error %.3g%% (bound %.3g%%)", frame,
+                 report["dfsph_steps"], report["density_iterations"], 100 * report["density_error"],
+                 100 * report["max_density_error"], report["divergence_iterations"],
+                 100 * report["divergence_error"], 100 * report["max_divergence_error"])
 
 
 def check_stable(spec, params: SolverParams, frame: int, data: dict) -> None:
@@ -85,26 +117,26 @@ def check_stable(spec, params: SolverParams, frame: int, data: dict) -> None:
     rho0 = params.fluid_table[data["fluid"], 1]
     ratio = float(np.max(data["density"] / rho0)) if len(rho0) else 1.0
     if ratio > spec.sim.max_density_ratio:
+        hint = "raise sim.speed_of_sound or lower sim.cfl" if spec.sim.solver == "wcsph" else \
+            "lower sim.max_density_error or sim.cfl"
         raise StageError(f"{where}: density reached {ratio:.2f}x rest (bound sim.max_density_ratio = "
-                         f"{spec.sim.max_density_ratio}); raise sim.speed_of_sound or lower sim.cfl")
+                         f"{spec.sim.max_density_ratio}); {hint}")
 
 
 def build_solver(spec, paths, first_frame: int):
     """A solver at the latest checkpoint before first_frame, or at the initial fill."""
-    from solver.fill import fill_blocks
-    from solver.sph import SPHSolver
-
     params = solver_params(spec)
     ckpts = [c for c in paths.checkpoints() if c < first_frame]
     if ckpts:
         frame = ckpts[-1]
         data, attrs = read_h5(paths.checkpoint(frame))
-        solver = SPHSolver(params, data, time_s=attrs["time"], step=attrs["step"], dt_prev=attrs["dt_prev"])
+        solver = make_solver(spec, params, data, time_s=attrs["time"], step=attrs["step"],
+                             dt_prev=attrs["dt_prev"])
         log.info("sim: resuming from checkpoint at frame %d (t = %.4f s, step %d)", frame,
                  attrs["time"], attrs["step"])
         return params, solver, frame
-    solver = SPHSolver(params, fill_blocks(params, fluid_blocks(spec)))
-    log.info("sim: %d particles, h = %.4g m, c = %.3g m/s", solver.n, params.h, params.speed_of_sound)
+    solver = make_solver(spec, params, initial_state(spec, params))
+    log.info("sim: %s, %d particles, h = %.4g m", spec.sim.solver, solver.n, params.h)
     return params, solver, None
 
 
@@ -131,7 +163,7 @@ def run(spec, frames, paths, progress) -> None:
         data = solver.snapshot()
         if start in todo or not paths.sim_frame(start).exists():
             progress.frame_done(start, [write_frame(paths.sim_frame(start), data,
-                                                    frame_attrs(spec, params, start, solver))])
+                                                    frame_attrs(spec, params, start, solver, {}))])
         write_checkpoint(paths, start, solver)
 
     previous = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGUSR1)}
@@ -154,8 +186,10 @@ def run(spec, frames, paths, progress) -> None:
                                   f"checkpoint written, run again to resume")
             data = solver.snapshot()
             check_stable(spec, params, frame, data)
+            report = solver.frame_report()
+            log_frame(frame, report)
             if frame in todo or not paths.sim_frame(frame).exists():
-                path = write_frame(paths.sim_frame(frame), data, frame_attrs(spec, params, frame, solver))
+                path = write_frame(paths.sim_frame(frame), data, frame_attrs(spec, params, frame, solver, report))
                 progress.frame_done(frame, [path])
             if (frame - spec.shot.frame_start) % spec.shot.checkpoint_every == 0 or frame == last:
                 write_checkpoint(paths, frame, solver)

@@ -1,0 +1,382 @@
+"""Divergence-free SPH (Bender & Koschier 2015, 2017), in the number-density form of
+Solenthaler & Pajarola 2008 so that fluids of different rest density share one constraint.
+
+Every particle i has mass m_i = rho0_i / delta0 (delta0: the fill lattice's number density), so
+rho_i / rho0_i = delta_i / delta0 whatever its fluid, and incompressibility is delta_i = delta0
+for all. A pressure-like kappa_i (= p_i / delta_i^2) changes velocities by
+
+    v_i -= dt / m_i [ sum_j (kappa_i + kappa_j) grad W_ij + kappa_i sum_b grad W_ib ]      (1)
+
+which conserves momentum between fluid particles; boundary samples b (walls, colliders) push
+with the particle's own kappa (Akinci et al. 2012). With the DFSPH factor
+
+    alpha_i = 1 / ( |sum_j grad W_ij + sum_b grad W_ib|^2 / m_i + sum_j |grad W_ij|^2 / m_j )
+
+one Jacobi sweep of (1) with kappa_i = alpha_i (delta*_i - delta0) / dt^2 removes particle i's
+predicted compression delta*_i - delta0, and kappa_i = alpha_i (D delta_i / Dt) / dt its
+compressing divergence. One step (Bender & Koschier 2017, Algorithm 1):
+
+  1. neighbours, number density, alpha
+  2. divergence solve: D delta / Dt = sum_j v_ij . grad W_ij + v_i . sum_b grad W_ib -> 0
+     where it compresses, until its mean times dt / delta0 is under max_divergence_error
+  3. non-pressure accelerations (gravity, viscosity, surface tension)
+  4. time step: CFL on the particle speed alone, dt = cfl r / max |v + a dt|, capped by max_dt
+  5. v* = v + dt a
+  6. density solve: delta* = delta + dt D delta / Dt -> delta0 where compressed, until the
+     mean relative compression is under max_density_error
+  7. drift x += dt v*, collide
+Both solves start from the previous step's kappa (warm start). A particle's reported pressure
+is its density solve's kappa times delta^2.
+"""
+import math
+
+import numpy as np
+import taichi as ti
+
+from . import kernels as K
+from .boundaries import collider_sdf, domain_walls, table3
+from .errors import Unstable
+from .neighbours import k_gather_f1
+from .params import F_MASS, F_MU, F_SIGMA, SolverParams
+from .sph import SPHSolver
+from .types import F1, F2, F4, I1, V3, Box, Consts, raise_max, vec3
+from .wcsph import color_tension
+
+# A particle with fewer neighbours than this is at a free surface and takes no part in the
+# divergence solve (its neighbourhood is too thin to tell expansion from splashing apart);
+# SPlisHSPlasH uses 20 for a 3D kernel of h = 4 r, whose full neighbourhood holds about 30.
+MIN_DIVERGENCE_NEIGHBOURS = 20
+MIN_ITERATIONS = 2
+# Share of the last step's kappa a solve starts from. The whole of it overshoots where the flow
+# has changed (a particle that left the bulk still gets pushed; measured: the whole density
+# kappa blew a resting column up within 2 s); SPlisHSPlasH takes half.
+WARM_START = 0.5
+
+
+
+@ti.func
+def boundary_sums(xi, c: ti.template(), box: ti.template(), ghost_t: ti.template(), ghost_g: ti.template(),
+                  ctype: ti.template(), cprm: ti.template(), sdf: ti.template()):
+    """(sum_b W_ib, sum_b grad_i W_ib) over the boundary samples of the walls and colliders near
+    x_i; colliders as planes at their distance. The tables hold -sum_b grad_i W_ib, which
+    points into the fluid."""
+    dens, into = domain_walls(xi, box.lo, box.hi, c.h, ghost_t, ghost_g)
+    for k in range(ctype.shape[0]):
+        phi, n = collider_sdf(ctype[k], cprm, sdf, k, xi)
+        if phi < c.h:
+            a = ti.max(phi, 0.0)
+            dens += table3(ghost_t, 0, a, 0.0, 0.0, c.h)
+            into += table3(ghost_g, 0, a, 0.0, 0.0, c.h) * n
+    return dens, -into
+
+
+@ti.kernel
+def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, alpha: F1, wall_grad: V3,
+                     verlet: I1, verlet_count: I1, near: I1, near_count: I1, cap: ti.i32,
+                     c: Consts, box: Box, ftab: F2, ghost_t: F4, ghost_g: F4,
+                     ctype: I1, cprm: F2, sdf: F1, kern: ti.template()):
+    """Number density delta_i = sum_j W_ij + sum_b W_ib, density m_i delta_i and the factor
+    alpha_i; copies the Verlet entries now within h into `near`, as the WCSPH density pass."""
+    h = c.h
+    for i in position:
+        xi = position[i]
+        s = K.w_r2(kern, 0.0, h)
+        grad_sum = vec3(0.0)
+        sq = 0.0
+        base = i * cap
+        k = 0
+        for m in range(verlet_count[i]):
+            j = verlet[base + m]
+            rv = xi - position[j]
+            r2 = rv.norm_sqr()
+            inside = (r2 < h * h) & (r2 > 1e-18)
+            near[base + k] = j
+            k += ti.select(inside, 1, 0)
+            if inside:
+                s += K.w_r2(kern, r2, h)
+                g = K.grad_w(kern, rv, ti.sqrt(r2), h)
+                grad_sum += g
+                sq += g.norm_sqr() / ftab[fluid[j], F_MASS]
+        near_count[i] = k
+        wd, wg = boundary_sums(xi, c, box, ghost_t, ghost_g, ctype, cprm, sdf)
+        s += wd
+        mi = ftab[fluid[i], F_MASS]
+        number_density[i] = s
+        density[i] = mi * s
+        wall_grad[i] = wg
+        beta = (grad_sum + wg).norm_sqr() / mi + sq
+        alpha[i] = ti.select(beta > 0.0, 1.0 / ti.max(beta, 1e-30), 0.0)
+
+
+@ti.func
+def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.template(),
+                 near_count: ti.template(), cap: ti.i32, wall_grad: ti.template(), h: ti.f32,
+                 kern: ti.template()):
+    """D delta_i / Dt = sum_j (v_i - v_j) . grad W_ij + v_i . sum_b grad W_ib (samples at rest)."""
+    xi, vi = position[i], velocity[i]
+    rate = vi.dot(wall_grad[i])
+    base = i * cap
+    for m in range(near_count[i]):
+        j = near[base + m]
+        rv = xi - position[j]
+        rate += (vi - velocity[j]).dot(K.grad_w(kern, rv, rv.norm(), h))
+    return rate
+
+
+@ti.kernel
+def k_divergence_kappa(position: V3, velocity: V3, near: I1, near_count: I1, cap: ti.i32, alpha: F1,
+                       wall_grad: V3, kappa: F1, error: F1, dt: ti.f32, h: ti.f32, kern: ti.template()):
+    """kappa_i = alpha_i max(D delta_i / Dt, 0) / dt for particles with a full neighbourhood;
+    error[0] gathers the sum of the rates they compress at."""
+    for i in position:
+        rate = density_rate(i, velocity, position, near, near_count, cap, wall_grad, h, kern)
+        rate = ti.select((rate > 0.0) & (near_count[i] >= MIN_DIVERGENCE_NEIGHBOURS), rate, 0.0)
+        kappa[i] = alpha[i] * rate / dt
+        error[0] += rate
+
+
+@ti.kernel
+def k_density_kappa(position: V3, velocity: V3, number_density: F1, near: I1, near_count: I1, cap: ti.i32,
+                    alpha: F1, wall_grad: V3, kappa: F1, error: F1, dt: ti.f32, c: Consts, kern: ti.template()):
+    """kappa_i = alpha_i max(delta*_i - delta0, 0) / dt^2 with delta* = delta + dt D delta / Dt;
+    error[0] gathers the sum of the compressions delta* - delta0 (clamped at 0)."""
+    for i in position:
+        rate = density_rate(i, velocity, position, near, near_count, cap, wall_grad, c.h, kern)
+        excess = ti.max(number_density[i] + dt * rate - c.lattice, 0.0)
+        kappa[i] = alpha[i] * excess / (dt * dt)
+        error[0] += excess
+
+
+@ti.kernel
+def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I1, cap: ti.i32,
+                  kappa: F1, total: F1, wall_grad: V3, dt: ti.f32, h: ti.f32, ftab: F2, kern: ti.template()):
+    """Equation (1) with this sweep's kappa; total += kappa (the step's pressure, and the next
+    step's warm start)."""
+    for i in position:
+        xi = position[i]
+        ki = kappa[i]
+        push = ki * wall_grad[i]
+        base = i * cap
+        for m in range(near_count[i]):
+            j = near[base + m]
+            rv = xi - position[j]
+            push += (ki + kappa[j]) * K.grad_w(kern, rv, rv.norm(), h)
+        velocity[i] -= dt / ftab[fluid[i], F_MASS] * push
+        total[i] += ki
+
+
+@ti.kernel
+def k_scale(a: F1, factor: ti.f32):
+    for i in a:
+        a[i] *= factor
+
+
+@ti.kernel
+def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
+                  near: I1, near_count: I1, cap: ti.i32, c: Consts, ftab: F2, stats: F1, dt_guess: ti.f32,
+                  tension: ti.template()):
+    """Gravity, viscosity (Müller et al. 2003: sum_j mu_ij (v_j - v_i) / (delta_i delta_j)
+    lap W_visc / m_i) and the color-field surface tension; stats[0] is raised to the largest
+    |v + a dt_guess| (the CFL speed)."""
+    h = c.h
+    for i in position:
+        xi, vi = position[i], velocity[i]
+        fi = fluid[i]
+        di = number_density[i]
+        a_v = vec3(0.0)
+        n = vec3(0.0)
+        lap = K.lap_poly6(0.0, h) / di
+        base = i * cap
+        for m in range(near_count[i]):
+            j = near[base + m]
+            rv = xi - position[j]
+            r = rv.norm()
+            dj = number_density[j]
+            mu = 0.5 * (ftab[fi, F_MU] + ftab[fluid[j], F_MU])
+            a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
+            if ti.static(tension):
+                n += K.grad_w(K.POLY6, rv, r, h) / dj
+                lap += K.lap_poly6(r, h) / dj
+        a = a_v / ftab[fi, F_MASS] + c.gravity
+        if ti.static(tension):
+            a += color_tension(ftab[fi, F_SIGMA], n, lap, density[i], h, c.threshold)
+        acceleration[i] = a
+        raise_max(stats, 0, (vi + dt_guess * a).norm())
+
+
+@ti.kernel
+def k_kick(velocity: V3, acceleration: V3, dt: ti.f32):
+    for i in velocity:
+        velocity[i] += dt * acceleration[i]
+
+
+@ti.kernel
+def k_drift(position: V3, velocity: V3, dt: ti.f32):
+    for i in position:
+        position[i] += dt * velocity[i]
+
+
+@ti.kernel
+def k_pressure(number_density: F1, kappa_dt2: F1, inv_dt2: ti.f32, pressure: F1):
+    """p_i = kappa_i delta_i^2 (kappa being p / delta^2 in equation (1)), from the density
+    solve's kappa dt^2."""
+    for i in pressure:
+        pressure[i] = kappa_dt2[i] * inv_dt2 * number_density[i] ** 2
+
+
+class DFSPHSolver(SPHSolver):
+    """DFSPH on the WCSPH solver's particles, neighbour search, boundaries and read-out.
+
+    Extra state (kept sorted with the particles, saved in checkpoints for bit-exact resume):
+      kappa_density     (N,) the last density solve's kappa times dt^2 (warm start)
+      kappa_divergence  (N,) the last divergence solve's kappa times dt (warm start)
+    Per-step counters for the frame report: iterations of both solves and their final errors.
+    """
+    EXTRA = ("kappa_density", "kappa_divergence")
+
+    def __init__(self, params: SolverParams, state: dict[str, np.ndarray], time_s: float = 0.0,
+                 step: int = 0, dt_prev: float = 0.0, max_density_error: float = 1e-3,
+                 max_divergence_error: float = 1e-3, max_iterations: int = 100):
+        if params.density_kind != params.pressure_kind:
+            raise ValueError("DFSPH takes one kernel for the density and its gradient")
+        super().__init__(params, state, time_s, step, dt_prev)
+        n = self.n
+        self.max_density_error = float(max_density_error)
+        self.max_divergence_error = float(max_divergence_error)
+        self.max_iterations = int(max_iterations)
+        self.alpha, self.kappa = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
+        self.wall_grad = ti.Vector.ndarray(3, ti.f32, shape=n)
+        self.error = ti.ndarray(ti.f32, 1)
+        for name in self.EXTRA:
+            a, b = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
+            a.from_numpy(np.asarray(state.get(name, np.zeros(n)), np.float32))
+            setattr(self, name, a)
+            setattr(self, name + "_b", b)
+        self.kern = params.density_kind
+        self.reset_counters()
+
+    # ----------------------------------------------------------------------------- phases
+    def build_lists(self) -> None:
+        super().build_lists()     # sorts the particles: the warm-start arrays follow them
+        for name in self.EXTRA:
+            a, b = getattr(self, name), getattr(self, name + "_b")
+            k_gather_f1(self.order, a, b)
+            setattr(self, name, b)
+            setattr(self, name + "_b", a)
+
+    def compute_density(self) -> None:
+        k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.wall_grad,
+                         self.verlet, self.verlet_count, self.near, self.near_count, self.nb_cap,
+                         self.consts, self.box, self.ftab, self.ghost_t, self.ghost_g,
+                         self.ctype, self.cprm, self.sdf, self.kern)
+
+    def _solve(self, kappa_of, total, warm_scale: float, bound: float, dt: float) -> tuple[int, float]:
+        """Jacobi sweeps of equation (1) until kappa_of() reports a mean error under `bound`
+        (at least MIN_ITERATIONS). `total` holds the last solve's kappa times dt^k: it is
+        applied first (warm start) and then accumulates this solve's. Returns (sweeps, error)."""
+        k_scale(total, warm_scale)
+        self._apply(total, self.kappa_density_b, dt)      # a scratch total, thrown away
+        iterations, err = 0, math.inf
+        while iterations < self.max_iterations:
+            self.error.fill(0.0)
+            kappa_of()
+            err = float(self.error.to_numpy()[0]) / (self.n * self.params.lattice_density)
+            if err <= bound and iterations >= MIN_ITERATIONS:
+                break
+            self._apply(self.kappa, total, dt)
+            iterations += 1
+        return iterations, err
+
+    def _apply(self, kappa, total, dt: float) -> None:
+        k_apply_kappa(self.position, self.velocity, self.fluid, self.near, self.near_count, self.nb_cap,
+                      kappa, total, self.wall_grad, dt, self.h, self.ftab, self.kern)
+
+    def divergence_solve(self, dt: float) -> None:
+        """Make the velocity field divergence-free where it compresses (step 2)."""
+        def kappa_of():
+            k_divergence_kappa(self.position, self.velocity, self.near, self.near_count, self.nb_cap, self.alpha,
+                               self.wall_grad, self.kappa, self.error, dt, self.h, self.kern)
+        it, err = self._solve(kappa_of, self.kappa_divergence, WARM_START / dt, self.max_divergence_error / dt, dt)
+        k_scale(self.kappa_divergence, dt)
+        self.counters["divergence_iterations"] += it
+        self.counters["divergence_error"] = max(self.counters["divergence_error"], err * dt)
+
+    def density_solve(self, dt: float) -> None:
+        """Correct v* so the predicted number density is delta0 where compressed (step 6)."""
+        def kappa_of():
+            k_density_kappa(self.position, self.velocity, self.number_density, self.near, self.near_count,
+                            self.nb_cap, self.alpha, self.wall_grad, self.kappa, self.error, dt, self.consts,
+                            self.kern)
+        it, err = self._solve(kappa_of, self.kappa_density, WARM_START / (dt * dt), self.max_density_error, dt)
+        k_scale(self.kappa_density, dt * dt)
+        self.counters["density_iterations"] += it
+        self.counters["density_error"] = max(self.counters["density_error"], err)
+
+    def nonpressure(self) -> None:
+        self.stats.fill(0.0)
+        guess = self.dt_prev or self.params.max_dt
+        k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
+                      self.density, self.near, self.near_count, self.nb_cap, self.consts, self.ftab,
+                      self.stats, guess, self.tension)
+        self.vmax = float(self.stats.to_numpy()[0])
+
+    def stable_dt(self) -> float:
+        """CFL on the particle speed alone: nothing moves more than cfl particle radii a step."""
+        if not math.isfinite(self.vmax):
+            raise Unstable(f"a particle's speed is {self.vmax} m/s")
+        dt = self.params.cfl * self.params.particle_radius / max(self.vmax, 1e-9)
+        return min(dt, self.dt_visc, self.params.max_dt)
+
+    def drift(self, dt: float) -> None:
+        k_drift(self.position, self.velocity, dt)
+        self.dt_prev = dt
+        self.time += dt
+        self.steps += 1
+        self.counters["steps"] += 1
+
+    # ------------------------------------------------------------------------------- step
+    def step(self, t_target: float | None = None, timed: bool = False) -> float:
+        """One step of Algorithm 1 (Bender & Koschier 2017); never steps past t_target."""
+        run = self._timed if timed else (lambda _name, fn, *args: fn(*args))
+        run("neighbours", self.update_lists)
+        run("density", self.compute_density)
+        if self.dt_prev > 0:
+            run("divergence", self.divergence_solve, self.dt_prev)
+        run("forces", self.nonpressure)
+        dt = self.time_step(t_target)
+        run("kick", k_kick, self.velocity, self.acceleration, dt)
+        run("pressure", self.density_solve, dt)
+        run("integrate", self.drift, dt)
+        run("collide", self.collide)
+        return dt
+
+    # --------------------------------------------------------------------------- read out
+    def refresh_fields(self) -> None:
+        """Density, and the last density solve's pressure, at the current positions."""
+        super().refresh_fields()
+        inv_dt2 = 1.0 / self.dt_prev ** 2 if self.dt_prev > 0 else 0.0
+        k_pressure(self.number_density, self.kappa_density, inv_dt2, self.pressure)
+
+    def output_velocity(self):
+        return self.velocity        # DFSPH's velocities are at the step's time already
+
+    def reset_counters(self) -> None:
+        self.counters = {"steps": 0, "density_iterations": 0, "divergence_iterations": 0,
+                         "density_error": 0.0, "divergence_error": 0.0}
+
+    def frame_report(self) -> dict[str, float]:
+        """Since the last call: mean iterations per step of both solves, and the largest final
+        mean errors (density: relative compression; divergence: relative rate times dt)."""
+        c, steps = self.counters, max(self.counters["steps"], 1)
+        out = {"dfsph_steps": c["steps"], "density_iterations": c["density_iterations"] / steps,
+               "divergence_iterations": c["divergence_iterations"] / steps,
+               "density_error": c["density_error"], "divergence_error": c["divergence_error"],
+               "max_density_error": self.max_density_error, "max_divergence_error": self.max_divergence_error}
+        self.reset_counters()
+        return out
+
+    def state(self) -> dict[str, np.ndarray]:
+        out = super().state()
+        for name in self.EXTRA:
+            out[name] = getattr(self, name).to_numpy()
+        return out
