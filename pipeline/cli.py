@@ -90,9 +90,17 @@ def _stages(choice: str) -> list[str]:
     return list(STAGES) if choice == "all" else [choice]
 
 
-def cmd_validate(args) -> int:
+def _load(args):
+    """The job's spec; keys that validate but may surprise are one warning line each."""
     from .spec import load_spec
     spec = load_spec(args.job, args.overrides)
+    for line in spec.warnings():
+        print(f"sphshot: warning: {args.job}: {line}", file=sys.stderr)
+    return spec
+
+
+def cmd_validate(args) -> int:
+    spec = _load(args)
     print(f"{args.job}: ok ({spec.shot.name} v{spec.shot.version:03d}, frames "
           f"{spec.shot.frame_start}-{spec.shot.frame_end}, {len(spec.fluids)} fluid(s), "
           f"{len(spec.colliders)} collider(s))")
@@ -102,8 +110,7 @@ def cmd_validate(args) -> int:
 def cmd_status(args) -> int:
     from . import cache
     from .frames import format_frames
-    from .spec import load_spec
-    spec = load_spec(args.job, args.overrides)
+    spec = _load(args)
     shot = cache.ShotCache(spec)
     paths = shot.paths
     print(f"{spec.shot.name} v{spec.shot.version:03d}: {paths.root}")
@@ -127,8 +134,7 @@ def cmd_run(args) -> int:
     from .frames import format_frames, select_frames
     from .progress import Progress
     from .runner import run_stages
-    from .spec import load_spec
-    spec = load_spec(args.job, args.overrides)
+    spec = _load(args)
     frames, source = select_frames(args.frames, args.chunk, spec.frames, os.environ)
     kind = "dask" if args.scheduler else args.executor
     if args.workers and (kind != "dask" or args.scheduler):
@@ -147,8 +153,7 @@ def cmd_run(args) -> int:
 
 def cmd_export(args) -> int:
     from .export import export_job
-    from .spec import load_spec
-    spec = load_spec(args.job, args.overrides)
+    spec = _load(args)
     path = export_job(spec, Path(args.job).resolve(), args.overrides, args.to, args.chunk,
                       Path(args.output) if args.output else None)
     print(f"sphshot: wrote {args.to} job {path}")

@@ -37,10 +37,10 @@ from . import kernels as K
 from .boundaries import collider_sdf, domain_walls, table3
 from .errors import Unstable
 from .neighbours import k_gather_f1
-from .params import F_MASS, F_MU, F_SIGMA, SolverParams
+from .params import F_ETA, F_MASS, F_MU, F_SIGMA, F_XSPH, SolverParams
 from .sph import SPHSolver
 from .types import F1, F2, F4, I1, V3, Box, Consts, raise_max, vec3
-from .wcsph import color_tension
+from .wcsph import color_tension, morris
 
 # A particle with fewer neighbours than this is at a free surface and takes no part in the
 # divergence solve (its neighbourhood is too thin to tell expansion from splashing apart);
@@ -174,16 +174,22 @@ def k_scale(a: F1, factor: ti.f32):
 @ti.kernel
 def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
                   near: I1, near_count: I1, cap: ti.i32, c: Consts, ftab: F2, stats: F1, dt_guess: ti.f32,
-                  tension: ti.template()):
-    """Gravity, viscosity (Müller et al. 2003: sum_j mu_ij (v_j - v_i) / (delta_i delta_j)
-    lap W_visc / m_i) and the color-field surface tension; stats[0] is raised to the largest
-    |v + a dt_guess| (the CFL speed)."""
+                  kern: ti.template(), tension: ti.template()):
+    """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
+    raised to the largest |v + a dt_guess| (the CFL speed). Viscosity is the sum of
+      Müller et al. 2003 (particle-scale mu):  sum_j mu_ij (v_j - v_i) / (delta_i delta_j) lap W_visc / m_i
+      Morris et al. 1997 (dynamic eta, Pa s):  sum_j (eta_i + eta_j) (x_ij . grad W_ij) v_ij
+                                                / (m_i delta_i delta_j (r^2 + 0.01 h^2))
+    and XSPH (Monaghan 1989) pulls v_i towards its neighbours' mean, xsph of the difference a
+    step: (xsph / dt_guess) sum_j (v_j - v_i) W_ij / delta_j."""
     h = c.h
     for i in position:
         xi, vi = position[i], velocity[i]
         fi = fluid[i]
         di = number_density[i]
         a_v = vec3(0.0)
+        a_eta = vec3(0.0)
+        smooth = vec3(0.0)
         n = vec3(0.0)
         lap = K.lap_poly6(0.0, h) / di
         base = i * cap
@@ -192,12 +198,15 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
             rv = xi - position[j]
             r = rv.norm()
             dj = number_density[j]
-            mu = 0.5 * (ftab[fi, F_MU] + ftab[fluid[j], F_MU])
+            fj = fluid[j]
+            mu = 0.5 * (ftab[fi, F_MU] + ftab[fj, F_MU])
             a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
+            a_eta += morris(ftab[fi, F_ETA] + ftab[fj, F_ETA], dj, rv, r, h, vi - velocity[j], kern)
+            smooth += (velocity[j] - vi) * K.w(kern, r, h) / dj
             if ti.static(tension):
                 n += K.grad_w(K.POLY6, rv, r, h) / dj
                 lap += K.lap_poly6(r, h) / dj
-        a = a_v / ftab[fi, F_MASS] + c.gravity
+        a = (a_v + a_eta / di) / ftab[fi, F_MASS] + c.gravity + ftab[fi, F_XSPH] / dt_guess * smooth
         if ti.static(tension):
             a += color_tension(ftab[fi, F_SIGMA], n, lap, density[i], h, c.threshold)
         acceleration[i] = a
@@ -317,7 +326,7 @@ class DFSPHSolver(SPHSolver):
         guess = self.dt_prev or self.params.max_dt
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
                       self.density, self.near, self.near_count, self.nb_cap, self.consts, self.ftab,
-                      self.stats, guess, self.tension)
+                      self.stats, guess, self.kern, self.tension)
         self.vmax = float(self.stats.to_numpy()[0])
 
     def stable_dt(self) -> float:

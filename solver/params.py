@@ -15,8 +15,9 @@ from .meshsdf import SDFGrid
 
 SPHERE, BOX, CAPSULE, MESH = 0, 1, 2, 3
 COLLIDER_TYPES = {"sphere": SPHERE, "box": BOX, "capsule": CAPSULE, "mesh": MESH}
-# Fluid table columns: particle mass, rest density rho0, Tait stiffness B, viscosity mu, tension sigma
-F_MASS, F_RHO0, F_B, F_MU, F_SIGMA = range(5)
+# Fluid table columns: particle mass, rest density rho0, Tait stiffness B, Müller's particle-scale
+# viscosity mu, tension sigma, dynamic viscosity (Morris, Pa s), XSPH smoothing
+F_MASS, F_RHO0, F_B, F_MU, F_SIGMA, F_ETA, F_XSPH = range(7)
 # Collider table columns: 8 shape params, restitution, friction, sign (+1 obstacle, -1 container).
 # A mesh's shape params: its distance grid's origin (3), voxel size, node counts (3) and offset
 # into the flat array of all mesh grids (exact in float32 up to 2^24).
@@ -26,8 +27,10 @@ C_REST, C_FRIC, C_SIGN = 8, 9, 10
 @dataclass(frozen=True)
 class Fluid:
     rest_density: float                # kg/m^3
-    viscosity: float = 0.0             # Pa s (Müller's particle-scale viscosity)
+    viscosity: float = 0.0             # Müller et al. 2003's particle-scale viscosity
     surface_tension: float = 0.0       # N/m
+    dynamic_viscosity: float = 0.0     # Pa s, physical (Morris et al. 1997): water 1e-3
+    xsph: float = 0.0                  # artist smoothing: share of the neighbours' mean velocity
 
 
 @dataclass(frozen=True)
@@ -101,10 +104,11 @@ class SolverParams:
 
     @cached_property
     def fluid_table(self) -> np.ndarray:
-        """(F, 5) float32: mass, rho0, B, mu, sigma (columns F_*)."""
+        """(F, 7) float32: mass, rho0, B, mu, sigma, eta, xsph (columns F_*)."""
         c = self.speed_of_sound
         return np.array([[f.rest_density / self.lattice_density, f.rest_density,
-                          f.rest_density * c * c / self.gamma, f.viscosity, f.surface_tension]
+                          f.rest_density * c * c / self.gamma, f.viscosity, f.surface_tension,
+                          f.dynamic_viscosity, f.xsph]
                          for f in self.fluids], dtype=np.float32)
 
     @cached_property

@@ -25,7 +25,7 @@ from .boundaries import collider_arrays, k_collide
 from .errors import TooLarge, Unstable
 from .neighbours import (CELL_DIV, SCAN_BLOCK, SKIN, k_count, k_fill_i, k_gather, k_max_displacement,
                          k_neighbours, k_scan_add, k_scan_blocks, k_scan_sums, k_scatter)
-from .params import F_MU, F_RHO0, F_SIGMA, SolverParams
+from .params import F_ETA, F_MU, F_RHO0, F_SIGMA, SolverParams
 from .types import Box, Consts, ivec3, vec3
 from .wcsph import k_density, k_forces, k_integrate, k_synced_velocity
 
@@ -65,6 +65,8 @@ class SPHSolver:
     every step. The lists are a function of the reference positions, which checkpoints keep,
     so a resumed run rebuilds exactly the lists it had.
     """
+
+    KEEP = 0.5      # particle centres stay this many radii from any wall or collider
 
     def __init__(self, params: SolverParams, state: dict[str, np.ndarray], time_s: float = 0.0,
                  step: int = 0, dt_prev: float = 0.0):
@@ -122,14 +124,14 @@ class SPHSolver:
         if self._lists_from_ref:
             self.ref.from_numpy(state["position_ref"].astype(np.float32))
         self._lists_valid = False
-        # centres stay half a radius from any wall
         self.box = Box(lo=vec3(*params.domain_min), hi=vec3(*params.domain_max),
                        restitution=params.domain_restitution, friction=params.domain_friction,
-                       keep=0.5 * params.particle_radius)
+                       keep=self.KEEP * params.particle_radius)
         self.consts = Consts(h=h, gravity=vec3(*params.gravity), gamma=params.gamma,
                              lattice=params.lattice_density, grad_scale=params.grad_scale,
                              threshold=params.surface_threshold)
-        nu_max = float(np.max(params.fluid_table[:, F_MU] / params.fluid_table[:, F_RHO0]))
+        table = params.fluid_table
+        nu_max = float(np.max(np.maximum(table[:, F_MU], table[:, F_ETA]) / table[:, F_RHO0]))
         self.dt_visc = 0.125 * (0.5 * h) ** 2 / nu_max if nu_max > 0 else math.inf
         self.vmax = 0.0
         self.amax = 0.0

@@ -7,6 +7,7 @@ arrays and constants come in as arguments.
               p_i = B ((rho_i / rho0)^gamma - 1), clamped at 0, B = rho0 c^2 / gamma
   forces      a_i = -1/m_i sum_j (p_i/delta_i^2 + p_j/delta_j^2) grad W_ij        (pressure)
                     + 1/m_i sum_j mu_ij (v_j - v_i) / (delta_i delta_j) lap W_ij   (viscosity)
+                    + Morris et al. 1997's viscosity in Pa s (see `morris`)
                     - sigma lap c_i n_i / |n_i| / rho_i                            (tension)
                     + g + the walls' pressure (boundary samples, kernels.ghost_tables)
   integrate   leapfrog: v_{n+1/2} = v_{n-1/2} + a_n (dt_{n-1/2} + dt_{n+1/2}) / 2,
@@ -16,8 +17,15 @@ import taichi as ti
 
 from . import kernels as K
 from .boundaries import collider_sdf, domain_walls, hydrostatic_wall, nearest_walls, table3
-from .params import F_B, F_MASS, F_MU, F_RHO0, F_SIGMA
+from .params import F_B, F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA
 from .types import F1, F2, F4, I1, V3, Box, Consts, raise_max, vec3
+
+
+@ti.func
+def morris(eta: ti.f32, dj: ti.f32, rv, r: ti.f32, h: ti.f32, dv, kern: ti.template()):
+    """One pair's term of Morris et al. 1997's viscosity in number-density form, times
+    m_i delta_i: (eta_i + eta_j) / delta_j (x_ij . grad W_ij) / (r^2 + 0.01 h^2) (v_i - v_j)."""
+    return eta / dj * rv.dot(K.grad_w(kern, rv, r, h)) / (r * r + 0.01 * h * h) * dv
 
 
 @ti.func
@@ -84,6 +92,7 @@ def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_den
         pi_ = pressure[i] / (di * di)
         a_p = vec3(0.0)
         a_v = vec3(0.0)
+        a_eta = vec3(0.0)
         n = vec3(0.0)
         lap = K.lap_poly6(0.0, h) / di      # color field includes the particle itself
         base = i * cap
@@ -95,10 +104,11 @@ def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_den
             a_p -= (pi_ + pressure[j] / (dj * dj)) * K.grad_w(pkern, rv, r, h)
             mu = 0.5 * (ftab[fi, F_MU] + ftab[fluid[j], F_MU])
             a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
+            a_eta += morris(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], dj, rv, r, h, vi - velocity[j], pkern)
             if ti.static(tension):
                 n += K.grad_w(K.POLY6, rv, r, h) / dj
                 lap += K.lap_poly6(r, h) / dj
-        a = (c.grad_scale * a_p + a_v) / mi + c.gravity
+        a = (c.grad_scale * a_p + a_v + a_eta / di) / mi + c.gravity
         # walls push with the particle's own pressure term only, p_i/delta_i^2 (Akinci et al.
         # 2012): boundary samples are fixed and carry no energy of their own, so this is the
         # energy-consistent force. Mirroring the pressure (2 p_i/delta_i^2) pumps energy into

@@ -130,3 +130,27 @@ def test_help_documents_exit_codes(capsys):
     out = capsys.readouterr().out
     for code in ("0", "1", "2", "3", "4", "5"):
         assert f"\n  {code}  " in out
+
+
+def test_old_particle_scale_viscosity_validates_with_one_warning(tmp_path, capsys):
+    """A job file from before dynamic_viscosity (Müller's particle-scale `viscosity` with the
+    default dfsph solver) still validates, with one warning line naming the key; the sim then
+    uses that viscosity, not water's."""
+    job = tmp_path / "job.toml"
+    job.write_text(GOOD.replace('name = "water"', 'name = "water"\nviscosity = 1.0'))
+    assert main(["validate", str(job)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"sphshot: warning: {job}: fluids[0].viscosity: "), err
+    assert "dynamic_viscosity" in err[0]
+    assert load_spec(job).fluid_viscosity(0) == (1.0, 0.0)
+
+
+def test_viscosity_defaults_and_xsph_is_dfsph_only(tmp_path, capsys):
+    job = tmp_path / "job.toml"
+    job.write_text(GOOD)
+    code = main(["validate", str(job), "--set", 'sim.solver="wcsph"', "--set", "fluids.0.xsph=0.1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 0 and err == [f'sphshot: warning: {job}: fluids[0].xsph: ignored by sim.solver = "wcsph" (dfsph only)']
+    assert load_spec(job).fluid_viscosity(0) == (0.0, 0.001)                         # dfsph: water
+    assert load_spec(job, ['sim.solver="wcsph"']).fluid_viscosity(0) == (1.0, 0.0)   # wcsph: Müller's
+    assert load_spec(job, ["fluids.0.dynamic_viscosity=10.0"]).fluid_viscosity(0) == (0.0, 10.0)

@@ -52,13 +52,20 @@ def solver_params(spec) -> SolverParams:
             colliders.append(Collider("mesh", **common, sdf=grid))
     return SolverParams(
         particle_radius=sim.particle_radius, kernel_radius=spec.kernel_radius_m,
-        fluids=tuple(Fluid(f.rest_density, f.viscosity, f.surface_tension) for f in spec.fluids),
+        fluids=tuple(fluid(spec, fi) for fi in range(len(spec.fluids))),
         speed_of_sound=sim.speed_of_sound or 10.0 * spec.expected_max_speed(),
         gravity=tuple(sim.gravity), domain_min=tuple(spec.domain.min), domain_max=tuple(spec.domain.max),
         domain_restitution=spec.domain.restitution, domain_friction=spec.domain.friction,
         colliders=tuple(colliders), gamma=sim.gamma, cfl=sim.cfl, max_dt=sim.max_dt,
         surface_threshold=sim.surface_threshold, density_kernel=sim.density_kernel,
         pressure_kernel=sim.pressure_kernel)
+
+
+def fluid(spec, fi: int) -> Fluid:
+    f = spec.fluids[fi]
+    mu, eta = spec.fluid_viscosity(fi)
+    return Fluid(rest_density=f.rest_density, viscosity=mu, surface_tension=f.surface_tension,
+                 dynamic_viscosity=eta, xsph=f.xsph)
 
 
 def fluid_blocks(spec) -> list[Block]:
