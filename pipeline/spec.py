@@ -85,7 +85,10 @@ class Sim(Strict):
     max_divergence_error: Annotated[float, Field(gt=0, le=0.1)] = 0.001  # dfsph: mean rate x dt
     max_iterations: Annotated[int, Field(ge=1, le=10000)] = 100          # dfsph: per solve and step
     max_dt: Pos = 1.0 / 240.0                        # s
-    surface_threshold: Pos = 0.4                     # |grad c| * h above which tension acts
+    surface_threshold: Pos = 0.4                     # |grad c| * h above which tension acts (mueller)
+    # mueller: Müller et al. 2003's color-field force; akinci: Akinci et al. 2013's cohesion and
+    # curvature (dfsph only), which holds drops together instead of pushing surface particles off
+    surface_tension_model: Literal["mueller", "akinci"] = "mueller"
     max_density_ratio: Annotated[float, Field(gt=1)] = 1.5  # instability guard on rho/rho0
     kernels: Kernels = Kernels()
 
@@ -96,6 +99,12 @@ class Sim(Strict):
         if self.solver == "dfsph" and (given - {"cubic", "wendland"} or len(given) > 1):
             raise ValueError(f"kernels: dfsph takes one kernel, \"cubic\" or \"wendland\", for the density and "
                              f"its gradient; got density = {k.density!r}, pressure = {k.pressure!r}")
+        return self
+
+    @model_validator(mode="after")
+    def _akinci_needs_dfsph(self):
+        if self.surface_tension_model == "akinci" and self.solver != "dfsph":
+            raise ValueError("surface_tension_model: \"akinci\" needs solver = \"dfsph\"")
         return self
 
     @property

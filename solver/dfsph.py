@@ -37,7 +37,7 @@ from . import kernels as K
 from .boundaries import collider_sdf, domain_walls, table3
 from .errors import Unstable
 from .neighbours import k_gather_f1
-from .params import F_ETA, F_MASS, F_MU, F_SIGMA, F_XSPH, SolverParams
+from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
 from .sph import SPHSolver
 from .types import F1, F2, F4, I1, V3, Box, Consts, raise_max, vec3
 from .wcsph import color_tension, morris
@@ -51,6 +51,7 @@ MIN_ITERATIONS = 2
 # has changed (a particle that left the bulk still gets pushed; measured: the whole density
 # kappa blew a resting column up within 2 s); SPlisHSPlasH takes half.
 WARM_START = 0.5
+MUELLER, AKINCI = 1, 2          # surface tension models
 
 
 
@@ -174,14 +175,19 @@ def k_scale(a: F1, factor: ti.f32):
 @ti.kernel
 def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
                   near: I1, near_count: I1, cap: ti.i32, c: Consts, ftab: F2, stats: F1, dt_guess: ti.f32,
-                  kern: ti.template(), tension: ti.template()):
+                  normal: V3, kern: ti.template(), tension: ti.template()):
     """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
     raised to the largest |v + a dt_guess| (the CFL speed). Viscosity is the sum of
       Müller et al. 2003 (particle-scale mu):  sum_j mu_ij (v_j - v_i) / (delta_i delta_j) lap W_visc / m_i
       Morris et al. 1997 (dynamic eta, Pa s):  sum_j (eta_i + eta_j) (x_ij . grad W_ij) v_ij
                                                 / (m_i delta_i delta_j (r^2 + 0.01 h^2))
     and XSPH (Monaghan 1989) pulls v_i towards its neighbours' mean, xsph of the difference a
-    step: (xsph / dt_guess) sum_j (v_j - v_i) W_ij / delta_j."""
+    step: (xsph / dt_guess) sum_j (v_j - v_i) W_ij / delta_j. Surface tension (`tension`):
+    0 none, MUELLER the color field's (see wcsph.color_tension), AKINCI Akinci et al. 2013's
+    cohesion and curvature between particles of one fluid, with gamma = the fluid's tension:
+      a_i = sum_j K_ij (-gamma m_j C(r) x_ij / r - gamma (n_i - n_j)),  K_ij = 2 rho0 / (rho_i + rho_j)
+    (n: `normal`, from k_surface_normals), which pulls a drop together instead of pushing its
+    surface particles off it."""
     h = c.h
     for i in position:
         xi, vi = position[i], velocity[i]
@@ -191,6 +197,7 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
         a_eta = vec3(0.0)
         smooth = vec3(0.0)
         n = vec3(0.0)
+        a_st = vec3(0.0)
         lap = K.lap_poly6(0.0, h) / di
         base = i * cap
         for m in range(near_count[i]):
@@ -203,14 +210,44 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
             a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
             a_eta += morris(ftab[fi, F_ETA] + ftab[fj, F_ETA], dj, rv, r, h, vi - velocity[j], kern)
             smooth += (velocity[j] - vi) * K.w(kern, r, h) / dj
-            if ti.static(tension):
+            if ti.static(tension == MUELLER):
                 n += K.grad_w(K.POLY6, rv, r, h) / dj
                 lap += K.lap_poly6(r, h) / dj
+            if ti.static(tension == AKINCI):
+                if fj == fi:
+                    k_ij = 2.0 * ftab[fi, F_RHO0] / (density[i] + density[j])
+                    gamma = ftab[fi, F_SIGMA]
+                    a_st -= k_ij * gamma * (ftab[fj, F_MASS] * cohesion(r, h) * rv / r + normal[i] - normal[j])
         a = (a_v + a_eta / di) / ftab[fi, F_MASS] + c.gravity + ftab[fi, F_XSPH] / dt_guess * smooth
-        if ti.static(tension):
+        if ti.static(tension == MUELLER):
             a += color_tension(ftab[fi, F_SIGMA], n, lap, density[i], h, c.threshold)
+        if ti.static(tension == AKINCI):
+            a += a_st
         acceleration[i] = a
         raise_max(stats, 0, (vi + dt_guess * a).norm())
+
+
+@ti.func
+def cohesion(r: ti.f32, h: ti.f32) -> ti.f32:
+    """Akinci et al. 2013's cohesion spline C(r): attracting beyond h/2, repelling inside."""
+    s = 32.0 / (math.pi * h ** 9)
+    d = (h - r) ** 3 * r ** 3
+    return s * ti.select(2.0 * r > h, d, 2.0 * d - h ** 6 / 64.0) * ti.select(r < h, 1.0, 0.0)
+
+
+@ti.kernel
+def k_surface_normals(position: V3, number_density: F1, near: I1, near_count: I1, cap: ti.i32, h: ti.f32,
+                      normal: V3, kern: ti.template()):
+    """Akinci et al. 2013's surface normal n_i = h sum_j grad W_ij / delta_j (0 inside)."""
+    for i in position:
+        xi = position[i]
+        n = vec3(0.0)
+        base = i * cap
+        for m in range(near_count[i]):
+            j = near[base + m]
+            rv = xi - position[j]
+            n += K.grad_w(kern, rv, rv.norm(), h) / number_density[j]
+        normal[i] = h * n
 
 
 @ti.kernel
@@ -255,6 +292,7 @@ class DFSPHSolver(SPHSolver):
         self.max_iterations = int(max_iterations)
         self.alpha, self.kappa = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
         self.wall_grad = ti.Vector.ndarray(3, ti.f32, shape=n)
+        self.normal = ti.Vector.ndarray(3, ti.f32, shape=n)     # Akinci et al. 2013's surface normals
         self.error = ti.ndarray(ti.f32, 1)
         for name in self.EXTRA:
             a, b = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
@@ -324,9 +362,13 @@ class DFSPHSolver(SPHSolver):
     def nonpressure(self) -> None:
         self.stats.fill(0.0)
         guess = self.dt_prev or self.params.max_dt
+        mode = (AKINCI if self.params.surface_tension_model == "akinci" else MUELLER) if self.tension else 0
+        if mode == AKINCI:
+            k_surface_normals(self.position, self.number_density, self.near, self.near_count, self.nb_cap, self.h,
+                              self.normal, self.kern)
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
                       self.density, self.near, self.near_count, self.nb_cap, self.consts, self.ftab,
-                      self.stats, guess, self.kern, self.tension)
+                      self.stats, guess, self.normal, self.kern, mode)
         self.vmax = float(self.stats.to_numpy()[0])
 
     def stable_dt(self) -> float:

@@ -57,7 +57,8 @@ def solver_params(spec) -> SolverParams:
         gravity=tuple(sim.gravity), domain_min=tuple(spec.domain.min), domain_max=tuple(spec.domain.max),
         domain_restitution=spec.domain.restitution, domain_friction=spec.domain.friction,
         colliders=tuple(colliders), gamma=sim.gamma, cfl=sim.cfl, max_dt=sim.max_dt,
-        surface_threshold=sim.surface_threshold, density_kernel=sim.density_kernel,
+        surface_threshold=sim.surface_threshold, surface_tension_model=sim.surface_tension_model,
+        density_kernel=sim.density_kernel,
         pressure_kernel=sim.pressure_kernel)
 
 
