@@ -32,6 +32,7 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="sphshot", description="Headless SPH fluid shots: sim -> surface -> render.",
                 epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--version", action="version", version=f"sphshot {_version()}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
 
     def common(sp):
@@ -74,6 +75,14 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("status", help="per stage: frames valid, missing, stale, and where")
     common(s)
     return p
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("sphshot")
+    except PackageNotFoundError:       # run from a checkout that was never installed
+        return "unknown (not installed)"
 
 
 def _positive(text: str) -> int:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
@@ -38,8 +39,9 @@ def _check_extent(lo, hi) -> None:
 
 
 class Strict(BaseModel):
-    """Unknown keys rejected, no type coercion (an int is accepted where a float is asked)."""
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+    """Unknown keys rejected, no type coercion (an int is accepted where a float is asked),
+    no NaN or infinity anywhere (TOML has them: `nan`, `inf`)."""
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
 # --------------------------------------------------------------------------------------- shot
@@ -51,6 +53,15 @@ class Shot(Strict):
     output: str = "shots"          # folder; relative paths are relative to the job file
     version: Annotated[int, Field(ge=1, le=999)] = 1
     checkpoint_every: Annotated[int, Field(ge=1)] = 10   # frames between full-state checkpoints
+
+    @field_validator("output")
+    @classmethod
+    def _variables_set(cls, output):
+        expanded = os.path.expandvars(os.path.expanduser(output))
+        if "$" in expanded:
+            unset = sorted(set(re.findall(r"\$\{?([A-Za-z_][A-Za-z0-9_]*)", expanded)))
+            raise ValueError(f"expected environment variables that are set, got {', '.join('$' + v for v in unset)} unset")
+        return output
 
     @model_validator(mode="after")
     def _range(self):
@@ -235,6 +246,18 @@ class Camera(Strict):
     up: Vec3 = (0.0, 1.0, 0.0)
     fov: Annotated[float, Field(gt=1, lt=179)] = 35.0   # vertical field of view, degrees
 
+    @model_validator(mode="after")
+    def _not_degenerate(self):
+        view = np.subtract(self.focal_point, self.position)
+        up = np.asarray(self.up, float)
+        if not np.linalg.norm(view) > 0:
+            raise ValueError("position and focal_point must differ, got the same point")
+        if not np.linalg.norm(up) > 0:
+            raise ValueError(f"up must be a direction, got {list(self.up)}")
+        if np.linalg.norm(np.cross(view / np.linalg.norm(view), up / np.linalg.norm(up))) < 1e-6:
+            raise ValueError(f"up must not be along the view direction, got up = {list(self.up)}")
+        return self
+
 
 class CameraKey(Camera):
     frame: int
@@ -375,8 +398,9 @@ class ShotSpec(Strict):
 
     @property
     def output_root(self) -> Path:
-        """<output>/<name>/v### — every file of this shot version lives below it."""
-        out = Path(self.shot.output)
+        """<output>/<name>/v### — every file of this shot version lives below it. `~` and
+        $VARIABLES in shot.output are expanded (validation checks they are set)."""
+        out = Path(os.path.expandvars(os.path.expanduser(self.shot.output)))
         if not out.is_absolute():
             out = Path(self.job_dir) / out
         # normalised but not resolved: symlinks of a farm's shared folder stay as written
@@ -528,7 +552,7 @@ def load_spec(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> 
     path = Path(path)
     source = str(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")      # a byte-order mark is no error
     except FileNotFoundError:
         raise SpecError(source, ["job file not found"]) from None
     except (OSError, UnicodeDecodeError) as exc:

@@ -2,8 +2,9 @@
 
 Grids (those the spec's surface.grids names): `surface` (level set, narrow band of `half_width`
 voxels, built from the mesh so the two agree), `density` (fog, the color field wherever
-particles reach) and `velocity` (Vec3, on the band of 8^3 blocks the surface passes through,
-where the color exceeds FOG_TOLERANCE). All share one linear transform of voxel size `cell`;
+particles reach) and `vel` (Vec3, the name Houdini and Blender read; surface.grids calls it
+"velocity"; on the band of 8^3 blocks the surface passes through, where the color exceeds
+FOG_TOLERANCE). All share one linear transform of voxel size `cell`;
 index (i, j, k) is at world cell * (i, j, k). Metadata: frame, time.
 """
 from __future__ import annotations
@@ -50,7 +51,7 @@ def _density(field, xform):
 
 def _velocity(field, xform):
     grid = vdb.Vec3SGrid((0.0, 0.0, 0.0))
-    grid.name = "velocity"
+    grid.name = "vel"          # the name Houdini and Blender look for
     grid.vectorType = vdb.VectorType.CONTRAVARIANT_RELATIVE
     grid.transform = xform
     if field is not None and field.velocity is not None:

@@ -285,3 +285,13 @@ def test_sigterm_writes_checkpoint_and_exits_5(tmp_path):
     rerun = sphshot("run", job, "--stage", "sim", *args, check=True)
     assert f"sim: resuming from checkpoint at frame {max(written)}" in rerun.stderr
     assert cache.scan(spec, paths, "sim", spec.frames).valid == tuple(spec.frames)
+
+
+def test_a_fluid_block_inside_a_collider_is_one_line(job_copy):
+    """Every lattice site of the block lies inside the sphere: the sim says so in one line
+    (it was a traceback)."""
+    job = job_copy()
+    proc = sphshot("run", job, *small("colliders.0.radius=2.0"), "--stage", "sim")
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("sphshot: error:")]
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(lines) == 1 and "expected at least one particle, got 0" in lines[0], proc.stderr

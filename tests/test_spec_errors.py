@@ -74,6 +74,15 @@ CORPUS = [
      "surface.grids[1]: expected 'surface', 'density' or 'velocity', got 'fog'"),
     ("vdb-grid-twice", GOOD, ["--set", 'surface.grids=["density", "density"]'],
      "surface.grids: each grid at most once, got 'density' twice"),
+    ("nan-in-a-vector", GOOD.replace("particle_radius = 0.02", "particle_radius = 0.02\ngravity = [0.0, nan, 0.0]"),
+     [], "sim.gravity[1]: expected a finite number, got nan"),
+    ("infinite-fps", GOOD.replace('output = "out"', 'output = "out"\nfps = inf'), [],
+     "shot.fps: expected a finite number, got inf"),
+    ("camera-up-zero", GOOD, ["--set", "render.camera.up=[0, 0, 0]"], "render.camera: up must be a direction"),
+    ("camera-looks-along-up", GOOD, ["--set", "render.camera={position = [0, 2, 0], focal_point = [0, 0, 0]}"],
+     "render.camera: up must not be along the view direction"),
+    ("unset-variable-in-output", GOOD.replace('output = "out"', 'output = "$SPHSHOT_UNSET_VAR/out"'), [],
+     "shot.output: expected environment variables that are set, got $SPHSHOT_UNSET_VAR unset"),
 ]
 
 
@@ -154,3 +163,28 @@ def test_viscosity_defaults_and_xsph_is_dfsph_only(tmp_path, capsys):
     assert load_spec(job).fluid_viscosity(0) == (0.0, 0.001)                         # dfsph: water
     assert load_spec(job, ['sim.solver="wcsph"']).fluid_viscosity(0) == (1.0, 0.0)   # wcsph: Müller's
     assert load_spec(job, ["fluids.0.dynamic_viscosity=10.0"]).fluid_viscosity(0) == (0.0, 10.0)
+
+
+def test_a_byte_order_mark_is_no_error(tmp_path, capsys):
+    """Editors on Windows start UTF-8 files with a BOM; TOML allows none, we skip it."""
+    job = tmp_path / "job.toml"
+    job.write_bytes("\ufeff".encode() + GOOD.encode())
+    assert main(["validate", str(job)]) == 0, capsys.readouterr().err
+
+
+def test_home_and_variables_in_output_are_expanded(tmp_path, monkeypatch):
+    monkeypatch.setenv("SPHSHOT_TEST_SHOTS", str(tmp_path / "farm"))
+    job = tmp_path / "job.toml"
+    job.write_text(GOOD.replace('output = "out"', 'output = "$SPHSHOT_TEST_SHOTS/x"'))
+    assert load_spec(job).output_root == tmp_path / "farm" / "x" / "t" / "v001"
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    job.write_text(GOOD.replace('output = "out"', 'output = "~/shots"'))
+    assert load_spec(job).output_root == tmp_path / "home" / "shots" / "t" / "v001"
+
+
+def test_version(capsys):
+    from importlib.metadata import version
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"sphshot {version('sphshot')}"

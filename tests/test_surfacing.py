@@ -290,7 +290,7 @@ def test_field_without_velocity():
     mesh = marching_cubes(field, 0.5)
     assert field.velocity is None and len(mesh.faces) > 0 and not mesh.velocity.any()
     grids = {g.name: g for g in vdb.build_grids(field, mesh, 1, 0.0, 3.0)}
-    assert grids["velocity"].activeVoxelCount() == 0 and grids["density"].activeVoxelCount() > 0
+    assert grids["vel"].activeVoxelCount() == 0 and grids["density"].activeVoxelCount() > 0
 
 
 def _trilinear(acc, xform, points):
@@ -328,7 +328,7 @@ def test_vdb_round_trip(vdb_file):
     path, written = vdb_file
     grids, _meta = ov.readAll(str(path))
     by_name = {g.name: g for g in grids}
-    assert set(by_name) == {"surface", "density", "velocity"}
+    assert set(by_name) == {"surface", "density", "vel"}     # `vel`: Houdini's and Blender's name
     assert by_name["surface"].gridClass == ov.GridClass.LEVEL_SET
     assert by_name["density"].gridClass == ov.GridClass.FOG_VOLUME
     for g0 in written:
@@ -381,7 +381,7 @@ def test_empty_frame_writes_empty_mesh_and_grids(tmp_path, caplog):
     assert "frame 0012: surfacing: no particles" in caplog.text
     write_vdb(tmp_path / "e.vdb", vdb.build_grids(field, mesh, 12, 0.5, 3.0))
     grids, _ = ov.readAll(str(tmp_path / "e.vdb"))
-    assert {g.name for g in grids} == {"surface", "density", "velocity"}
+    assert {g.name for g in grids} == {"surface", "density", "vel"}
     assert all(g.activeVoxelCount() == 0 for g in grids)
     write_mesh(tmp_path / "e.ply", mesh, "ply")
     assert len(read_mesh(tmp_path / "e.ply").faces) == 0

@@ -58,7 +58,7 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
           hashed=_sim_sections, format_version=3),
     Stage("surface", "sim", "pipeline.stages.surface", per_frame=True,
           frame_files=_surface_files,
-          hashed=lambda spec: {"surface": spec.surface.model_dump()}, format_version=1),
+          hashed=lambda spec: {"surface": spec.surface.model_dump()}, format_version=2),   # 2: grid `vel`
     Stage("render", "surface", "pipeline.stages.render", per_frame=True,
           frame_files=lambda paths, frame: [paths.render_frame(frame)],
           hashed=lambda spec: {"render": spec.render.model_dump()}, format_version=1),
