@@ -247,6 +247,26 @@ def scan(spec: ShotSpec, paths: ShotPaths, stage: str, frames) -> StageScan:
     return ShotCache(spec, paths).scan(stage, frames)
 
 
+def remove_if_empty(paths: ShotPaths) -> bool:
+    """Remove a shot version that holds nothing but its manifest and empty folders (what a
+    first run that failed before publishing a frame leaves). Any other file (a frame, a live
+    worker's claim or temporary) keeps it. Returns whether it was removed."""
+    root = paths.root
+    if not root.is_dir():
+        return False
+    files = [p for p in root.rglob("*") if not p.is_dir()]
+    if any(p != paths.manifest for p in files):
+        return False
+    with contextlib.suppress(FileNotFoundError):
+        paths.manifest.unlink()
+    for folder in sorted((p for p in root.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+    with contextlib.suppress(OSError):
+        root.rmdir()
+    return not root.exists()
+
+
 def clear_stage(paths: ShotPaths, stage: str) -> None:
     """Remove a stage's published files (used by --force when its parameters changed)."""
     folders = [paths.stage_dir(stage)] + ([paths.checkpoint_dir] if stage == "sim" else [])

@@ -27,6 +27,7 @@ class Progress:
         self._totals: dict[str, int] = {}
         self._done: dict[str, int] = {}
         self._last: dict[str, float] = {}
+        self._start: dict[str, float] = {}
         self._last_pct = -1
         self._t0 = 0.0
 
@@ -38,6 +39,7 @@ class Progress:
         self._last_pct = -1
         self._t0 = time.perf_counter()
         self._last = {s: self._t0 for s in self._totals}
+        self._start = {}
         if not self._totals:
             return
         if self.interactive:
@@ -67,11 +69,14 @@ class Progress:
             self._bar.stop()
             self._bar = None
         for stage in self._totals:
-            dt = self._last[stage] - self._t0
+            # from the stage's start (streamed Dask stages: from the run's, as they overlap it)
+            dt = self._last[stage] - self._start.get(stage, self._t0)
             self.line(f"sphshot: {stage}: {self._done[stage]} frame(s) in {dt:.1f} s")
         self._totals = {}
 
     def for_stage(self, stage: str) -> "StageProgress":
+        """The progress of one stage, which starts now (its time is counted from here)."""
+        self._start.setdefault(stage, time.perf_counter())
         return StageProgress(self, stage)
 
     def file_written(self, path: Path) -> None:

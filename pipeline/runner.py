@@ -70,6 +70,17 @@ def run_stages(spec: ShotSpec, stages: list[str], frames: list[int], *, force: b
     executor = executor or SerialExecutor()
     progress = progress or Progress()
     shot = ShotCache(spec)
+    fresh = not shot.paths.root.exists()
+    try:
+        _run(spec, shot, stages, frames, force, executor, progress)
+    except BaseException:
+        if fresh:       # a failed first run leaves no empty version folder behind
+            cache.remove_if_empty(shot.paths)
+        raise
+
+
+def _run(spec: ShotSpec, shot: ShotCache, stages: list[str], frames: list[int], force: bool, executor,
+         progress: Progress) -> None:
     plans = plan_run(shot, stages, frames, force)
     for plan in plans:
         if not plan.todo:

@@ -295,3 +295,27 @@ def test_a_fluid_block_inside_a_collider_is_one_line(job_copy):
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("sphshot: error:")]
     assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
     assert len(lines) == 1 and "expected at least one particle, got 0" in lines[0], proc.stderr
+    spec = spec_of(job, small("colliders.0.radius=2.0"))
+    assert not spec.output_root.exists(), "the failed first run left its version folder behind"
+
+
+def test_stage_timing_lines_count_from_each_stage_start():
+    """The closing lines give each stage's own time (they were cumulative from the run's
+    start, so the render line included the sim's and the surface's time)."""
+    import io
+
+    from pipeline.progress import Progress
+
+    out = io.StringIO()
+    p = Progress(stream=out, interactive=False)
+    p.begin({"sim": 1, "surface": 1})
+    sim = p.for_stage("sim")
+    time.sleep(0.3)
+    sim.frame_done(1)
+    surface = p.for_stage("surface")
+    time.sleep(0.1)
+    surface.frame_done(1)
+    p.end()
+    times = {ln.split(":")[1].strip(): float(ln.rsplit(" in ", 1)[1].split()[0])
+             for ln in out.getvalue().splitlines() if " frame(s) in " in ln}
+    assert times["sim"] >= 0.3 and 0.1 <= times["surface"] < 0.3, times
