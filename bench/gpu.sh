@@ -17,9 +17,15 @@ echo "# $(date -u +%Y-%m-%dT%H:%MZ) $(nvidia-smi --query-gpu=name,memory.total,d
 echo "## GPU tests"
 $PY -m pytest -q -m gpu tests 2>&1 | tail -n 15
 echo "## solver: particle-steps per second on CUDA"
-for n in 50000 1000000 4000000; do
-  $PY bench/solver.py --only sphshot --backend cuda --particles "$n" --radius "$(python3 -c "print(0.006*(50000/$n)**(1/3))")" --stop-at 0.02 2>&1 | grep -E "^(sphshot|#)" 
+for solver in wcsph dfsph; do
+  for n in 50000 1000000 4000000; do
+    $PY bench/solver.py --only sphshot --solver "$solver" --backend cuda --particles "$n" \
+      --radius "$(python3 -c "print(0.006*(50000/$n)**(1/3))")" --stop-at 0.02 2>&1 | grep -E "^(sphshot|#)"
+  done
 done
+echo "## DFSPH: simulated seconds per wall second, 1M-particle dam break (target: 1 s in 10 s)"
+$PY bench/solver.py --only sphshot --solver dfsph --backend cuda --particles 1000000 \
+  --radius "$(python3 -c "print(0.006*(50000/1000000)**(1/3))")" --stop-at 0.25 2>&1 | grep -E "^(sphshot|#)"
 echo "## surfacing (sphshot side, Taichi on CUDA)"
 $PY - <<'PY'
 import time, numpy as np

@@ -41,10 +41,12 @@ def scene(particles: int, radius: float, solver: str = "dfsph", cfl: float = 0.8
     from pipeline.spec import ShotSpec
 
     d = 2 * radius
-    # 42 x 26 x 46 spacings of 12 mm (50,232 particles) is closest to the anchor's 50,102;
-    # scale it uniformly to the requested count, capped to the tank
+    # 42 x 26 x 46 spacings (50,232 particles) is closest to the anchor's 50,102; scale the
+    # spacing counts uniformly to the requested count (the block's size in metres follows the
+    # radius), capped to the tank. (Scaling by the radius as well, as before, made the GPU
+    # script's "1M" and "4M" runs 6M and 25M particles.)
     n0 = 42 * 26 * 46
-    s = (particles / n0) ** (1 / 3) * 0.006 / radius
+    s = (particles / n0) ** (1 / 3)
     nx, ny, nz = (max(1, round(k * s)) for k in (42, 26, 46))
     ext = (min(nx * d, 1.5), min(ny * d, 0.6), min(nz * d, 0.59))
     return ShotSpec.model_validate({
