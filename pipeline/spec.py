@@ -120,13 +120,17 @@ class Sim(Strict):
 
     @property
     def density_kernel(self) -> str:
-        default = "cubic" if self.solver == "dfsph" else "poly6"
-        return self.kernels.density or (self.kernels.pressure if self.solver == "dfsph" else None) or default
+        return self._kernel(self.kernels.density, self.kernels.pressure, "poly6")
 
     @property
     def pressure_kernel(self) -> str:
-        default = "cubic" if self.solver == "dfsph" else "spiky"
-        return self.kernels.pressure or (self.kernels.density if self.solver == "dfsph" else None) or default
+        return self._kernel(self.kernels.pressure, self.kernels.density, "spiky")
+
+    def _kernel(self, given: str | None, other: str | None, wcsph_default: str) -> str:
+        """dfsph: one kernel for both terms (either key names it; cubic by default)."""
+        if self.solver == "dfsph":
+            return given or other or "cubic"
+        return given or wcsph_default
 
 
 class Domain(Strict):

@@ -9,7 +9,7 @@ them in the integrator.
 import numpy as np
 import taichi as ti
 
-from .params import BOX, C_FRIC, C_REST, C_SIGN, CAPSULE, MESH, SPHERE, SolverParams
+from .params import BOX, C_FRIC, C_REST, C_SIGN, MESH, SPHERE, SolverParams
 from .types import F1, F2, I1, V3, Box, ivec3, vec3
 
 
@@ -164,6 +164,22 @@ def collider_sdf(kind: ti.i32, prm: ti.template(), sdf: ti.template(), k: ti.i32
             n = d / L
     s = prm[k, C_SIGN]   # containers keep particles inside: flip the field
     return phi * s, n * s
+
+
+@ti.func
+def boundary_sums(xi, c: ti.template(), box: ti.template(), ghost_t: ti.template(), ghost_g: ti.template(),
+                  ctype: ti.template(), cprm: ti.template(), sdf: ti.template()):
+    """(sum_b W_ib, sum_b grad_i W_ib) over the boundary samples of the walls and colliders near
+    x_i; colliders as planes at their distance. The tables hold -sum_b grad_i W_ib, which
+    points into the fluid."""
+    dens, into = domain_walls(xi, box.lo, box.hi, c.h, ghost_t, ghost_g)
+    for k in range(ctype.shape[0]):
+        phi, n = collider_sdf(ctype[k], cprm, sdf, k, xi)
+        if phi < c.h:
+            a = ti.max(phi, 0.0)
+            dens += table3(ghost_t, 0, a, 0.0, 0.0, c.h)
+            into += table3(ghost_g, 0, a, 0.0, 0.0, c.h) * n
+    return dens, -into
 
 
 @ti.kernel

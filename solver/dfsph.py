@@ -34,7 +34,7 @@ import numpy as np
 import taichi as ti
 
 from . import kernels as K
-from .boundaries import collider_sdf, domain_walls, table3
+from .boundaries import boundary_sums
 from .errors import Unstable
 from .neighbours import k_gather_f1
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
@@ -52,23 +52,6 @@ MIN_ITERATIONS = 2
 # kappa blew a resting column up within 2 s); SPlisHSPlasH takes half.
 WARM_START = 0.5
 MUELLER, AKINCI = 1, 2          # surface tension models
-
-
-
-@ti.func
-def boundary_sums(xi, c: ti.template(), box: ti.template(), ghost_t: ti.template(), ghost_g: ti.template(),
-                  ctype: ti.template(), cprm: ti.template(), sdf: ti.template()):
-    """(sum_b W_ib, sum_b grad_i W_ib) over the boundary samples of the walls and colliders near
-    x_i; colliders as planes at their distance. The tables hold -sum_b grad_i W_ib, which
-    points into the fluid."""
-    dens, into = domain_walls(xi, box.lo, box.hi, c.h, ghost_t, ghost_g)
-    for k in range(ctype.shape[0]):
-        phi, n = collider_sdf(ctype[k], cprm, sdf, k, xi)
-        if phi < c.h:
-            a = ti.max(phi, 0.0)
-            dens += table3(ghost_t, 0, a, 0.0, 0.0, c.h)
-            into += table3(ghost_g, 0, a, 0.0, 0.0, c.h) * n
-    return dens, -into
 
 
 @ti.kernel
@@ -380,15 +363,13 @@ class DFSPHSolver(SPHSolver):
 
     def drift(self, dt: float) -> None:
         k_drift(self.position, self.velocity, dt)
-        self.dt_prev = dt
-        self.time += dt
-        self.steps += 1
+        self.advance_clock(dt)
         self.counters["steps"] += 1
 
     # ------------------------------------------------------------------------------- step
     def step(self, t_target: float | None = None, timed: bool = False) -> float:
         """One step of Algorithm 1 (Bender & Koschier 2017); never steps past t_target."""
-        run = self._timed if timed else (lambda _name, fn, *args: fn(*args))
+        run = self.phase_runner(timed)
         run("neighbours", self.update_lists)
         run("density", self.compute_density)
         if self.dt_prev > 0:

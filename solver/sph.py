@@ -223,6 +223,10 @@ class SPHSolver:
 
     def integrate(self, dt: float) -> None:
         k_integrate(self.position, self.velocity, self.acceleration, 0.5 * (self.dt_prev + dt), dt)
+        self.advance_clock(dt)
+
+    def advance_clock(self, dt: float) -> None:
+        """The step of length dt is done: time, step count and dt_{n-1/2} move on."""
         self.dt_prev = dt
         self.time += dt
         self.steps += 1
@@ -233,7 +237,7 @@ class SPHSolver:
     # ------------------------------------------------------------------------------- step
     def step(self, t_target: float | None = None, timed: bool = False) -> float:
         """One substep; never steps past t_target. Returns dt."""
-        run = self._timed if timed else (lambda _name, fn, *args: fn(*args))
+        run = self.phase_runner(timed)
         run("neighbours", self.update_lists)
         run("density", self.compute_density)
         run("forces", self.compute_forces)
@@ -252,6 +256,11 @@ class SPHSolver:
             elif remaining < 2 * dt:       # split the last two steps evenly, no sliver step
                 dt = 0.5 * remaining
         return dt
+
+    def phase_runner(self, timed: bool):
+        """run(name, fn, *args): calls fn, and with `timed` adds its synchronised wall time
+        to self.timer under name."""
+        return self._timed if timed else (lambda _name, fn, *args: fn(*args))
 
     def _timed(self, name: str, fn, *args) -> None:
         ti.sync()

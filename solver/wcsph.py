@@ -16,7 +16,7 @@ arrays and constants come in as arguments.
 import taichi as ti
 
 from . import kernels as K
-from .boundaries import collider_sdf, domain_walls, hydrostatic_wall, nearest_walls, table3
+from .boundaries import boundary_sums, collider_sdf, domain_walls, hydrostatic_wall, nearest_walls, table3
 from .params import F_B, F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA
 from .types import F1, F2, F4, I1, V3, Box, Consts, raise_max, vec3
 
@@ -63,11 +63,7 @@ def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure
         # lattice. They take the particle's own compression, so the share f of the kernel they
         # cover scales the fluid's sum up: delta = sum_fluid / (1 - f). Exact at rest and
         # under uniform (e.g. hydrostatic) compression; f is capped for particles in corners.
-        wall, _g = domain_walls(xi, box.lo, box.hi, h, ghost_t, ghost_g)
-        for ci in range(ctype.shape[0]):
-            phi, _n = collider_sdf(ctype[ci], cprm, sdf, ci, xi)
-            if phi < h:
-                wall += table3(ghost_t, 0, ti.max(phi, 0.0), 0.0, 0.0, h)   # planar approximation
+        wall, _g = boundary_sums(xi, c, box, ghost_t, ghost_g, ctype, cprm, sdf)   # colliders: planar
         s = s / ti.max(1.0 - wall / c.lattice, 0.1)
         f = fluid[i]
         r = ftab[f, F_MASS] * s

@@ -81,12 +81,13 @@ def test_resting_column_stays_put(resting_column):
 # ------------------------------------------------------------------------------------ volume
 def mesh_volume(d: dict, attrs_radius: float) -> float:
     """Volume of the surface mesh of a snapshot, as the surface stage makes it (iso 0.5)."""
+    import pyvista as pv
+
     from surfacing.reconstruct import SurfaceParams, reconstruct
 
     vol = np.full(len(d["position"]), (2 * attrs_radius) ** 3, np.float32)   # lattice volume
     _field, mesh = reconstruct(d["position"], None, vol,
                                SurfaceParams(cell=0.75 * attrs_radius, kernel_radius=4 * attrs_radius))
-    import pyvista as pv
     return float(pv.PolyData.from_regular_faces(mesh.points, mesh.faces).volume)
 
 

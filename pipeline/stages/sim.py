@@ -8,7 +8,6 @@ where its last checkpoint left it.
 from __future__ import annotations
 
 import logging
-import math
 import signal
 import time
 
