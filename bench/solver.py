@@ -92,7 +92,16 @@ def child(args) -> None:
         result["avg_divergence_iters"] = round(report["divergence_iterations"], 2)
     if args.phases:
         result["phase_s"] = {k: round(v, 2) for k, v in s.timer.totals.items()}
+    if args.device_bytes:
+        result["device_bytes_per_particle"] = round(device_bytes(s) / s.n)
     print("RESULT " + json.dumps(result), flush=True)
+
+
+def device_bytes(solver) -> int:
+    """Bytes of the solver's Taichi arrays (particles, neighbour lists, grid, boundary tables)."""
+    from taichi.lang._ndarray import Ndarray
+
+    return sum(a._get_element_size() * a._get_nelement() for a in vars(solver).values() if isinstance(a, Ndarray))
 
 
 def run_sphshot(args) -> dict:
@@ -101,6 +110,8 @@ def run_sphshot(args) -> dict:
            "--solver", args.solver]
     if args.phases:
         cmd.append("--phases")
+    if args.device_bytes:
+        cmd.append("--device-bytes")
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     m = re.search(r"^RESULT (\{.*\})$", proc.stdout, re.M)
     if proc.returncode != 0 or not m:
@@ -141,6 +152,7 @@ def main() -> None:
     ap.add_argument("--solver", default="dfsph", choices=("dfsph", "wcsph"), help="sphshot's solver")
     ap.add_argument("--anchor-solvers", default="wcsph,dfsph")
     ap.add_argument("--phases", action="store_true", help="time each step phase (adds syncs)")
+    ap.add_argument("--device-bytes", action="store_true", help="report the solver's device bytes per particle")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -154,7 +166,8 @@ def main() -> None:
     if args.only != "sphshot":
         rows += run_anchor(args)
     keys = ["particles", "steps", "sim_time_s", "wall_s", "ms_per_step", "particle_steps_per_s",
-            "sim_s_per_wall_s", "init_s", "peak_rss_mb", "avg_pressure_iters", "avg_divergence_iters"]
+            "sim_s_per_wall_s", "init_s", "peak_rss_mb", "avg_pressure_iters", "avg_divergence_iters",
+            "device_bytes_per_particle"]
     for r in rows:
         print(f"{r['solver']:22s} " + " ".join(f"{k}={r.get(k)}" for k in keys)
               + (f" phases={r['phase_s']}" if "phase_s" in r else ""))

@@ -14,15 +14,17 @@ them directly. Four kernels, each parallel over blocks and serial inside one:
 4. emit_triangles: each cell's triangles from the table, a vertex id being node_first of the
    edge's owner node plus its crossed edges along lower axes.
 
-Block-level offsets between the passes are numpy prefix sums over a few thousand numbers.
-vertex_normals, for any triangle mesh, is here too: a Taichi loop, like the rest of the mesh's
-making.
+place_vertices also interpolates each vertex's velocity along its edge, when the field has
+one. Block-level offsets between the passes are numpy prefix sums over a few thousand numbers;
+the per-node arrays stay on the device, and the color is read where the splat wrote it.
+vertex_normals, for any triangle mesh, is here too, in parallel and deterministic.
 """
 import numpy as np
 import taichi as ti
 
-from .mc_table import CORNER, EDGE_AXIS, EDGE_CORNER, table
+from . import device as D
 from .grid import B
+from .mc_table import EDGE_AXIS, EDGE_CORNER, table
 
 B3 = B * B * B
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -32,7 +34,13 @@ I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
 F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 U2 = ti.types.ndarray(dtype=ti.u8, ndim=2)
 V3 = ti.types.ndarray(dtype=ti.math.vec3, ndim=1)
-T3 = ti.types.ndarray(dtype=ti.types.vector(3, ti.i32), ndim=1)
+R8 = ti.types.ndarray(dtype=ti.types.vector(B, ti.f32), ndim=1)
+
+
+@ti.func
+def _at(color: ti.template(), idx):
+    """Node idx (block * 512 + node) of the color's rows of 8."""
+    return color[idx >> 3][idx & 7]
 
 
 @ti.func
@@ -41,7 +49,7 @@ def _value(color: ti.template(), nbr: ti.template(), s, x, y, z):
     itself; column bx + 2 by + 4 bz: the upper neighbour the node falls in, the zero block if
     none)."""
     blk = nbr[s, (x >> 3) + 2 * (y >> 3) + 4 * (z >> 3)]
-    return color[blk * B3 + ((x & 7) * B + (y & 7)) * B + (z & 7)]
+    return _at(color, blk * B3 + ((x & 7) * B + (y & 7)) * B + (z & 7))
 
 
 @ti.func
@@ -49,23 +57,23 @@ def _edges(color: ti.template(), nbr: ti.template(), s, n, iso):
     """The crossed edges of node n of block row s, as bits (1: +x, 2: +y, 4: +z)."""
     x, y, z = n >> 6, (n >> 3) & 7, n & 7
     base = nbr[s, 0] * B3
-    inside = color[base + n] > iso
+    inside = _at(color, base + n) > iso
     bits = 0
     # the node one step up each axis: in the block, or at the bottom of the upper neighbour
     ox = base + n + B * B if x < 7 else nbr[s, 1] * B3 + n - 7 * B * B
     oy = base + n + B if y < 7 else nbr[s, 2] * B3 + n - 7 * B
     oz = base + n + 1 if z < 7 else nbr[s, 4] * B3 + n - 7
-    if (color[ox] > iso) != inside:
+    if (_at(color, ox) > iso) != inside:
         bits |= 1
-    if (color[oy] > iso) != inside:
+    if (_at(color, oy) > iso) != inside:
         bits |= 2
-    if (color[oz] > iso) != inside:
+    if (_at(color, oz) > iso) != inside:
         bits |= 4
     return bits
 
 
 @ti.kernel
-def count_vertices(color: F1, nbr: I2, iso: ti.f32, edges: U2, node_first: I2, count: I1):
+def count_vertices(color: R8, nbr: I2, iso: ti.f32, edges: U2, node_first: I2, count: I1):
     """edges[s, n]: node n's crossed edges (bits, see _edges) in band block row s;
     node_first[s, n]: the crossed edges of the nodes before it; count[s]: all of the row's."""
     for s in count:
@@ -79,10 +87,12 @@ def count_vertices(color: F1, nbr: I2, iso: ti.f32, edges: U2, node_first: I2, c
 
 
 @ti.kernel
-def place_vertices(color: F1, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node_first: I2,
-                   local: F2):
+def place_vertices(color: R8, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node_first: I2,
+                   local: F2, vnbr: I2, velocity: V3, vertex_velocity: V3, with_velocity: ti.template()):
     """local[v]: vertex v in node units from its block's first node (linear interpolation along
-    its edge); node_first becomes global (adds offset[s])."""
+    its edge); node_first becomes global (adds offset[s]). With velocity (node-major vectors,
+    vnbr[s, col]: where the velocity of nbr[s, col]'s block is), vertex_velocity[v] the same
+    interpolation of the edge's nodes' velocities."""
     for s in offset:
         for n in range(B3):
             v = offset[s] + node_first[s, n]
@@ -97,7 +107,14 @@ def place_vertices(color: F1, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node_
                         local[v, 0] = ti.cast(x, ti.f32)
                         local[v, 1] = ti.cast(y, ti.f32)
                         local[v, 2] = ti.cast(z, ti.f32)
-                        local[v, a] += (iso - c0) / (c1 - c0)
+                        t = (iso - c0) / (c1 - c0)
+                        local[v, a] += t
+                        if ti.static(with_velocity):
+                            u0 = velocity[vnbr[s, 0] * B3 + n]
+                            x1, y1, z1 = x + int(a == 0), y + int(a == 1), z + int(a == 2)
+                            col = (x1 >> 3) + 2 * (y1 >> 3) + 4 * (z1 >> 3)
+                            u1 = velocity[vnbr[s, col] * B3 + ((x1 & 7) * B + (y1 & 7)) * B + (z1 & 7)]
+                            vertex_velocity[v] = (1.0 - t) * u0 + t * u1
                         v += 1
 
 
@@ -109,7 +126,7 @@ def _case(color: ti.template(), nbr: ti.template(), s, n, iso):
     if i < 7 and j < 7 and k < 7:                       # all eight corners in the block
         base = nbr[s, 0] * B3 + n
         for v in ti.static(range(8)):
-            if color[base + (v & 1) * B * B + (v >> 1 & 1) * B + (v >> 2 & 1)] > iso:
+            if _at(color, base + (v & 1) * B * B + (v >> 1 & 1) * B + (v >> 2 & 1)) > iso:
                 case |= 1 << v
     else:
         for v in ti.static(range(8)):
@@ -119,7 +136,7 @@ def _case(color: ti.template(), nbr: ti.template(), s, n, iso):
 
 
 @ti.kernel
-def count_triangles(color: F1, nbr: I2, iso: ti.f32, tri_count: I1, cases: U2, count: I1):
+def count_triangles(color: R8, nbr: I2, iso: ti.f32, tri_count: I1, cases: U2, count: I1):
     """cases[s, n]: the case of cell n of block row s; count[s]: the row's triangles."""
     for s in count:
         c = 0
@@ -155,70 +172,126 @@ def emit_triangles(cases: U2, slot: I2, tri_edges: I3, tri_count: I1, edge_corne
 
 
 @ti.kernel
-def k_vertex_normals(points: V3, faces: T3, out: V3):
-    """out[v] = the unit sum of the (area-weighted) normals e1 x e2 of the faces at v. One
-    thread, in face order: the sums are the same on every run (10 ms for 800k faces, against
-    120 ms for float64 numpy bincounts), and the float32 cross products of one-cell edges are
-    within 0.05 degrees of float64 ones (tests/test_surfacing.py)."""
-    ti.loop_config(serialize=True)
-    for f in range(faces.shape[0]):
-        a, b, c = faces[f][0], faces[f][1], faces[f][2]
+def k_face_normals(points: V3, faces: I2, normal: V3, count: I1):
+    """normal[f] = e1 x e2 of face f (twice its area, along its normal); count[v] += the faces at v."""
+    for f in range(normal.shape[0]):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
         p = points[a]
-        n = (points[b] - p).cross(points[c] - p)
-        out[a] = out[a] + n
-        out[b] = out[b] + n
-        out[c] = out[c] + n
+        normal[f] = (points[b] - p).cross(points[c] - p)
+        for q in ti.static(range(3)):
+            ti.atomic_add(count[faces[f, q]], 1)
+
+
+@ti.kernel
+def k_incident(faces: I2, start: I1, fill: I1, incident: I1):
+    """incident[start[v] ...]: the faces at vertex v (in no particular order yet)."""
+    for f in range(faces.shape[0]):
+        for q in ti.static(range(3)):
+            v = faces[f, q]
+            incident[start[v] + ti.atomic_add(fill[v], 1)] = f
+
+
+@ti.kernel
+def k_gather_normals(start: I1, count: I1, incident: I1, normal: V3, out: V3):
+    """out[v] = the unit sum of the normals of v's faces, summed in face order (each vertex's
+    few faces are insertion-sorted first): the same sums on every run and backend, and the
+    same as one thread adding face after face."""
     for v in out:
-        out[v] = out[v] / ti.max(out[v].norm(), 1e-30)
+        s0, n = start[v], count[v]
+        for a in range(1, n):
+            x = incident[s0 + a]
+            b = a - 1
+            while b >= 0:
+                if incident[s0 + b] <= x:
+                    break
+                incident[s0 + b + 1] = incident[s0 + b]
+                b -= 1
+            incident[s0 + b + 1] = x
+        acc = ti.math.vec3(0.0)
+        for a in range(n):
+            acc += normal[incident[s0 + a]]
+        out[v] = acc / ti.max(acc.norm(), 1e-30)
+
+
+def normals_on_device(points, faces, n_points: int, n_faces: int):
+    """Area-weighted unit vertex normals of a mesh already on the device, as a device array: a
+    gather per vertex over a vertex-to-face table (count, scan, fill, sort), in parallel."""
+    out = D.zeros(ti.f32, n_points, 3)
+    if n_faces == 0:
+        return out
+    normal = D.empty(ti.f32, n_faces, 3)
+    count = D.zeros(ti.i32, n_points)
+    k_face_normals(points, faces, normal, count)
+    start, total = D.exclusive_scan(count, n_points)
+    incident = D.empty(ti.i32, total)
+    k_incident(faces, start, D.zeros(ti.i32, n_points), incident)
+    k_gather_normals(start, count, incident, normal, out)
+    return out
 
 
 def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(V, 3) float32 outward unit vertex normals from the faces' winding (area-weighted)."""
-    out = np.zeros((len(points), 3), np.float32)
-    if len(faces):
-        k_vertex_normals(np.ascontiguousarray(points, np.float32), np.ascontiguousarray(faces, np.int32), out)
-    return out
+    if len(faces) == 0:
+        return np.zeros((len(points), 3), np.float32)
+    out = normals_on_device(D.vec3s(points), _faces(faces), len(points), len(faces))
+    return D.host(out)[:len(points)]
 
 
-def marching_cubes(color: np.ndarray, blocks: np.ndarray, todo: np.ndarray, upper: np.ndarray,
-                   neighbour, iso: float):
-    """(g, faces): the `iso` surface of a block-sparse field as vertices in global node
-    coordinates (float64) and triangles (int32) counter-clockwise seen from the side below
-    `iso` (outward for a fluid whose color is above it).
+def _faces(faces: np.ndarray):
+    return D.upload(np.asarray(faces).reshape(-1, 3))
 
-    color: (nb + 1, 8, 8, 8), the last block all zero; blocks: (nb, 3) block coordinates;
-    todo: the blocks that own a cell crossing `iso` (a superset will do); upper: (len(todo), 7)
-    their upper neighbours at block offsets CORNER[1:] (nb where missing); neighbour(offset,
-    ids): the same for any blocks (Field.neighbour)."""
+
+def marching_cubes(rows, upper: np.ndarray, blocks: np.ndarray, todo: np.ndarray, iso: float,
+                   velocity=None, velocity_slot: np.ndarray | None = None):
+    """(g, faces, vertex_velocity, faces_dev): the `iso` surface of a block-sparse field as
+    vertices in global node coordinates (float64), triangles (int32) counter-clockwise seen
+    from the side below `iso` (outward for a fluid whose color is above it), the vertices'
+    velocities (float32, zero without a velocity field), and the triangles on the device.
+
+    rows: the color on the device (rows of 8 nodes, the last block all zero); upper: (nb + 1,
+    8) each block and its upper neighbours at block offsets CORNER[1:] (Field.upper); blocks:
+    (nb, 3) block coordinates; todo: the blocks that own a cell crossing `iso` (a superset will
+    do). velocity: node-major vectors on the device, velocity_slot (nb + 1,) where each
+    block's are."""
     nb = len(blocks)
-    tri_edges, tri_count = table()
-    flat = color.reshape(-1)
-    up = np.c_[todo, upper]                                             # 8 columns
+    tri_edges, tri_count = (D.upload(a) for a in table())
+    up = upper[todo]                                                    # 8 columns
     band = np.unique(up[up < nb])
-    band_nbr = np.stack([band] + [neighbour(o, band) for o in CORNER[1:]], 1).astype(np.int32)
+    band_nbr = upper[band]
     row = np.full(nb + 1, 0, np.int32)        # the zero block owns no vertex: any row will do
     row[band] = np.arange(len(band), dtype=np.int32)
 
-    node_first = np.empty((len(band), B3), np.int32)
-    edges = np.empty((len(band), B3), np.uint8)
-    n_vert = np.empty(len(band), np.int32)
-    count_vertices(flat, band_nbr, iso, edges, node_first, n_vert)
-    local = np.empty((int(n_vert.sum()), 3), np.float32)
-    place_vertices(flat, band_nbr, iso, _exclusive_sum(n_vert), edges, node_first, local)
+    nbr_dev = D.upload(band_nbr)
+    node_first = D.empty(ti.i32, (len(band), B3))
+    edges = D.empty(ti.u8, (len(band), B3))
+    n_vert = D.empty(ti.i32, len(band))
+    count_vertices(rows, nbr_dev, iso, edges, node_first, n_vert)
+    n_vert = D.host(n_vert)
+    n_points = int(n_vert.sum())
+    local = D.empty(ti.f32, (n_points, 3))
+    vertex_velocity = D.empty(ti.f32, n_points, 3)
+    with_velocity = velocity is not None
+    vnbr = D.upload(velocity_slot[band_nbr].astype(np.int32)) if with_velocity else nbr_dev
+    if not with_velocity:
+        vertex_velocity = D.zeros(ti.f32, n_points, 3)
+    place_vertices(rows, nbr_dev, iso, D.upload(_exclusive_sum(n_vert)), edges, node_first, local, vnbr,
+                   velocity if with_velocity else vertex_velocity, vertex_velocity, with_velocity)
     # vertices are numbered block by block: add each one's block origin, in float64 (a grid far
     # from the origin keeps its precision; the kernels need no 64-bit floats, which some
     # Vulkan devices lack)
     g = np.repeat(blocks[band] * B, n_vert, axis=0).astype(np.float64)
-    g += local
-    del local
+    g += D.host(local)[:n_points]
 
-    cases = np.empty((len(todo), B3), np.uint8)
-    n_tri = np.empty(len(todo), np.int32)
-    count_triangles(flat, up.astype(np.int32), iso, tri_count, cases, n_tri)
-    faces = np.empty((int(n_tri.sum()), 3), np.int32)
-    emit_triangles(cases, row[up], tri_edges, tri_count, EDGE_CORNER.astype(np.int32),
-                   EDGE_AXIS.astype(np.int32), _exclusive_sum(n_tri), edges, node_first, faces)
-    return g, faces
+    cases = D.empty(ti.u8, (len(todo), B3))
+    n_tri = D.empty(ti.i32, len(todo))
+    up_dev = D.upload(up)
+    count_triangles(rows, up_dev, iso, tri_count, cases, n_tri)
+    n_tri = D.host(n_tri)
+    n_faces = int(n_tri.sum())
+    faces = D.empty(ti.i32, (n_faces, 3))
+    emit_triangles(cases, D.upload(row[up]), tri_edges, tri_count, D.upload(EDGE_CORNER),
+                   D.upload(EDGE_AXIS), D.upload(_exclusive_sum(n_tri)), edges, node_first, faces)
+    return g, D.host(faces)[:n_faces], D.host(vertex_velocity)[:n_points], faces
 
 
 def _exclusive_sum(n: np.ndarray) -> np.ndarray:

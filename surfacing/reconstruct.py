@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import mc
-from .grid import B, Field
+from . import device as D, mc
+from .grid import Field
 from .mesh import Mesh
 from .splat import Splat
 
@@ -50,29 +50,32 @@ def particle_volumes(data: dict, attrs: dict) -> np.ndarray:
 
 
 def color_field(positions, velocities, volumes, cell: float, support: float, iso: float = 0.5,
-                 kernel: str = "cubic") -> Field:
+                 kernel: str = "cubic", method: str = "auto") -> Field:
     """Splat the particles onto the blocks their supports reach (`kernel`: cubic, poly6 or
     wendland). With `velocities`, the velocity field too, on the blocks the `iso` surface
     crosses and their upper neighbours (what the mesh's vertices and a motion-blur band need),
-    from only the particles that reach them."""
-    sp = Splat(positions, volumes, cell, support, kernel)
+    from only the particles that reach them. `method`: the scatter (surfacing/splat.py: "auto"
+    picks by the backend)."""
+    sp = Splat(positions, volumes, cell, support, kernel, method)
     field = Field(sp.color(), sp.blocks, sp.lookup, sp.base_block, cell)
     if velocities is not None and field.n_blocks:
         ids, upper = field.crossing_blocks(iso)
         band = np.union1d(ids, upper[upper < field.n_blocks])
-        field.velocity, field.velocity_ids = sp.velocity(velocities, band, field.color), band
+        field.velocity_rows, field.velocity_ids = sp.velocity(velocities, band, field.rows), band
     return field
 
 
 def marching_cubes(field: Field, iso: float) -> Mesh:
     """The `iso` surface of the field as a mesh with vertex normals and velocities."""
-    return _with_normals(*_triangulate(field, iso))
+    points, faces, velocity, faces_dev = _triangulate(field, iso)
+    normals = mc.normals_on_device(D.vec3s(points), faces_dev, len(points), len(faces))
+    return Mesh(points, faces, D.host(normals)[:len(points)], velocity)
 
 
 def surface_mesh(field: Field, iso: float, smoothing_iterations: int, decimate: float) -> Mesh:
     """What the surface stage writes: marching cubes, then optional Taubin smoothing and
     decimation, with the vertex normals computed once, at the end."""
-    points, faces, velocity = _triangulate(field, iso)
+    points, faces, velocity, _ = _triangulate(field, iso)
     if len(faces) and (smoothing_iterations or decimate):
         points, faces, velocity = _smooth(points, faces, velocity, smoothing_iterations, decimate)
     return _with_normals(points, faces, velocity)
@@ -83,34 +86,19 @@ def _with_normals(points: np.ndarray, faces: np.ndarray, velocity: np.ndarray) -
 
 
 def _triangulate(field: Field, iso: float):
-    """(points, faces, velocity) of the `iso` surface: marching cubes (surfacing/mc.py) over
-    the blocks whose cells cross `iso`, one vertex per crossed grid edge."""
+    """(points, faces, velocity, faces on the device) of the `iso` surface: marching cubes
+    (surfacing/mc.py) over the blocks whose cells cross `iso`, one vertex per crossed grid
+    edge, its velocity interpolated along the edge."""
     empty = Mesh.empty()
-    if field.n_blocks == 0:
-        return empty.points, empty.faces, empty.velocity
-    todo, upper = field.crossing_blocks(iso)
+    todo = field.crossing_blocks(iso)[0] if field.n_blocks else ()
     if len(todo) == 0:
-        return empty.points, empty.faces, empty.velocity
-    g, faces = mc.marching_cubes(field.color, field.blocks, todo, upper.T, field.neighbour, iso)
-    points = g * field.cell
-    if field.velocity is None:
-        vel = np.zeros_like(points)
-    else:
-        # each vertex lies on a grid edge: linear interpolation between the edge's two nodes
-        base = np.floor(g).astype(np.int64)
-        axis = np.argmax(g - base, axis=1)
-        rows = np.arange(len(g))
-        frac = (g - base)[rows, axis][:, None]
-        step = np.zeros_like(base)
-        step[rows, axis] = 1
-        vel = (1 - frac) * _node_velocity(field, base) + frac * _node_velocity(field, base + step)
-    return points.astype(np.float32), faces, vel.astype(np.float32)
-
-
-def _node_velocity(field: Field, nodes: np.ndarray) -> np.ndarray:
-    slot = field.velocity_slot[field.block_of(nodes)]
-    loc = nodes % B
-    return field.velocity[slot, loc[:, 0], loc[:, 1], loc[:, 2]]
+        return empty.points, empty.faces, empty.velocity, None
+    slot = None if field.velocity_ids is None else field.velocity_slot.astype(np.int32)
+    if slot is not None and field.velocity_rows is None:       # a Field made from numpy (tests)
+        field.velocity_rows = D.vec3s(field.velocity.reshape(-1, 3))
+    g, faces, vel, faces_dev = mc.marching_cubes(field.rows, field.upper, field.blocks, todo, iso,
+                                                 field.velocity_rows, slot)
+    return (g * field.cell).astype(np.float32), faces, vel, faces_dev
 
 
 def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -13,6 +13,18 @@ into 8 phases by the parity of their coordinates. Two cubes of one phase are at 
 so their particles' supports never share a node: every phase runs in parallel over its cubes,
 each cube's particles one after another, with plain (non-atomic) adds. The sum is therefore the
 same on every run and with any number of threads (the order of adds is fixed).
+
+Everything stays on the device from the particles' upload to the field (surfacing/device.py):
+the particles are counting-sorted by cube there (each cube's run then sorted by particle
+index, so the order of adds is the input order, as a stable sort gives), and the color and
+velocity are device arrays the marching cubes reads in place.
+
+On a GPU the phases leave too few threads (a few thousand cubes, each a long serial loop:
+0.45 s at 4M particles on an H200), so there every particle's node planes run in parallel and
+add with 64-bit integer atomics in fixed point (FIXED): integer sums do not depend on the
+order of the adds, so the field is again the same on every run; it agrees with the phased
+float sums to float32 round-off (tests/test_surfacing.py). CUDA only: 64-bit atomics are not
+sure to exist on Vulkan or Metal devices, which keep the phased scatter.
 """
 import math
 
@@ -21,16 +33,23 @@ import taichi as ti
 
 from solver import kernels as K
 
+from . import device as D
 from .grid import B, GridTooLarge
 
 B2, B3 = B * B, B * B * B
 MAX_LOOKUP = 1 << 28           # block-index entries (1 GiB of int32); beyond this, refuse
+# fixed-point scale of the GPU scatter's 64-bit integer sums: each term keeps float32's relative
+# precision (it is rounded to 2^-40 after being computed in float32), the sum is exact, and the
+# range is 8e6 (color about 1 in the bulk; momentum = color x speed in m/s)
+FIXED = float(2 ** 40)
+I64 = ti.types.ndarray(dtype=ti.i64, ndim=1)
 
 vec3 = ti.math.vec3
 V3 = ti.types.ndarray(dtype=vec3, ndim=1)
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
+ivec3 = ti.math.ivec3
 R8 = ti.types.ndarray(dtype=ti.types.vector(B, ti.f32), ndim=1)     # rows of 8 nodes along z
 
 
@@ -60,8 +79,9 @@ def k_mark(pos: V3, origin: vec3, cell: ti.f32, h: ti.f32, used: I3):
 
 
 @ti.kernel
-def k_splat(pos: V3, vel: V3, vol: F1, first: I1, last: I1, origin: vec3, cell: ti.f32, h: ti.f32,
-            target: I3, out: R8, sigma: ti.f32, kind: ti.template(), velocity_pass: ti.template()):
+def k_splat(pos: V3, vel: V3, vol: F1, start: I1, count: I1, touches: I1, key0: ti.i32, key1: ti.i32, origin: vec3,
+            cell: ti.f32, h: ti.f32, target: I3, out: R8, sigma: ti.f32, kind: ti.template(),
+            velocity_pass: ti.template()):
     """Each particle adds into the nodes of its support, slab by slab and a block row (8 nodes
     along z, one vector) at a time: for each node plane i the sphere cuts, the block rows of
     the square around the plane's disc whose nearest node lies inside the sphere. The 8 weights
@@ -71,8 +91,9 @@ def k_splat(pos: V3, vel: V3, vol: F1, first: I1, last: I1, origin: vec3, cell: 
 
     target[block] is the slot each block's rows go to, -1 to skip the block. Row r (= i * 8 + j
     within the block) of slot b is out[b * 64 + r] in the color pass, which adds V_j W; the
-    velocity pass adds V_j W v_j, component a into out[(b * 3 + a) * 64 + r]. The outer loop
-    runs over one phase's cubes in parallel; see the module docstring. Plain loads and stores,
+    velocity pass adds V_j W v_j, component a into out[(b * 3 + a) * 64 + r], from the particles
+    with touches[p] only. The outer loop runs over one phase's cubes (keys key0 to key1) in
+    parallel; see the module docstring. Plain loads and stores,
     not `+=` (which Taichi compiles to an atomic add). Node indices are never negative, so
     `>> 3` and `& 7` are the block and the node within it. Distances are in units of h."""
     nx, ny, nz = target.shape[0] * B, target.shape[1] * B, target.shape[2] * B
@@ -80,8 +101,11 @@ def k_splat(pos: V3, vel: V3, vol: F1, first: I1, last: I1, origin: vec3, cell: 
     ih = 1.0 / h
     step = cell * ih                                    # node spacing in units of h
     lanes = ti.Vector([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]) * step
-    for c in first:
-        for p in range(first[c], last[c]):
+    for c in range(key0, key1):
+        for p in range(start[c], start[c] + count[c]):
+            if ti.static(velocity_pass):
+                if touches[p] == 0:
+                    continue
             x = pos[p]
             vp = vol[p] * sigma
             vv = vp * vel[p]
@@ -118,6 +142,60 @@ def k_splat(pos: V3, vel: V3, vol: F1, first: I1, last: I1, origin: vec3, cell: 
 
 
 @ti.kernel
+def k_splat_atomic(pos: V3, vel: V3, vol: F1, touches: I1, slabs: ti.i32, origin: vec3, cell: ti.f32, h: ti.f32,
+                   target: I3, acc: I64, scale: ti.f32, kind: ti.template(), velocity_pass: ti.template()):
+    """The GPU scatter: one thread per particle and node plane of its support (`slabs` planes
+    at most), adding round(scale V_j W) -- times v_j in the velocity pass -- into the integer
+    sums `acc` with atomics (node n of slot b at b * 512 + n; component a of the momentum at
+    (b * 3 + a) * 512 + n: the layout of k_splat's rows). `scale` includes sigma."""
+    nx, ny, nz = target.shape[0] * B, target.shape[1] * B, target.shape[2] * B
+    inv = 1.0 / cell
+    ih = 1.0 / h
+    for p, s in ti.ndrange(pos.shape[0], slabs):
+        skip = False
+        if ti.static(velocity_pass):
+            skip = touches[p] == 0
+        x = pos[p]
+        g = (x - origin) * inv
+        i0, i1 = _span(g.x, h * inv, nx)
+        i = i0 + s
+        if not skip and i <= i1:
+            dx = (origin.x + cell * i - x.x) * ih
+            rem_x = 1.0 - dx * dx
+            if rem_x > 0.0:
+                half = ti.sqrt(rem_x) * h * inv
+                j0, j1 = _span(g.y, half, ny)
+                k0, k1 = _span(g.z, half, nz)
+                vp = vol[p] * scale
+                vv = vp * vel[p]
+                for j in range(j0, j1 + 1):
+                    dy = (origin.y + cell * j - x.y) * ih
+                    rem = rem_x - dy * dy
+                    if rem > 0.0:
+                        for k in range(k0, k1 + 1):
+                            dz = (origin.z + cell * k - x.z) * ih
+                            q = dx * dx + dy * dy + dz * dz
+                            b = target[i >> 3, j >> 3, k >> 3]
+                            if q < 1.0 and b >= 0:
+                                w = K.shape(kind, q)
+                                node = ((i & 7) * B + (j & 7)) * B + (k & 7)
+                                if ti.static(velocity_pass):
+                                    for a in ti.static(range(3)):
+                                        ti.atomic_add(acc[(b * 3 + a) * B3 + node], ti.cast(ti.round(w * vv[a]), ti.i64))
+                                else:
+                                    ti.atomic_add(acc[b * B3 + node], ti.cast(ti.round(w * vp), ti.i64))
+
+
+@ti.kernel
+def k_fixed_to_rows(acc: I64, inv_scale: ti.f64, rows: R8):
+    for r in rows:
+        v = ti.Vector([0.0] * B)
+        for q in ti.static(range(B)):
+            v[q] = ti.cast(ti.cast(acc[r * B + q], ti.f64) * inv_scale, ti.f32)
+        rows[r] = v
+
+
+@ti.kernel
 def k_touches(pos: V3, origin: vec3, cell: ti.f32, h: ti.f32, target: I3, touches: I1):
     """touches[p] = 1 where particle p's support cube reaches a block with target >= 0."""
     for p in pos:
@@ -130,116 +208,203 @@ def k_touches(pos: V3, origin: vec3, cell: ti.f32, h: ti.f32, target: I3, touche
 
 
 def grid_frame(positions: np.ndarray, cell: float, support: float):
-    """(base_block, shape, origin) of the block array over the particles' supports: the block
-    coordinates of its first block, its shape in blocks, and the world position of its first
-    node. Bounds are taken a column at a time (numpy's min over axis 0 of an (N, 3) array is
-    25 times slower)."""
+    """(base_block, shape, origin, top) of the block array over the particles' supports: the
+    block coordinates of its first block, its shape in blocks, the world position of its first
+    node, and the particles' upper bounds. Bounds are taken a column at a time (numpy's min over
+    axis 0 of an (N, 3) array is 25 times slower)."""
     reach = support / cell + 2.0                    # the support, the padding node, round-off
     cols = [positions[:, a] for a in range(3)]
-    lo = np.floor(np.array([c.min() for c in cols], np.float64) / cell - reach).astype(np.int64)
-    hi = np.ceil(np.array([c.max() for c in cols], np.float64) / cell + reach).astype(np.int64)
+    bottom = np.array([c.min() for c in cols], np.float64)
+    top = np.array([c.max() for c in cols], np.float64)
+    lo = np.floor(bottom / cell - reach).astype(np.int64)
+    hi = np.ceil(top / cell + reach).astype(np.int64)
     base_block = lo // B
     shape = tuple(int(v) for v in hi // B - base_block + 1)
     if math.prod(shape) > MAX_LOOKUP:
         raise GridTooLarge(f"the particles span {shape} blocks of {B}^3 cells; increase "
                            f"surface.cell_size or remove stray particles")
-    return base_block, shape, (base_block * B * cell).astype(np.float32)
+    return base_block, shape, (base_block * B * cell).astype(np.float32), top
 
 
-def phase_order(positions: np.ndarray, origin: np.ndarray, support: float):
-    """(order, cube_id, phase): the particles into cubes of edge 2h, ordered by phase, then
-    cube (the order inside a cube made no difference to the splat's speed; a stable sort keeps
-    it fixed); cube_id and phase in that order."""
-    cube = [np.floor((positions[:, a].astype(np.float64) - origin[a]) / (2 * support)).astype(np.int64)
-            for a in range(3)]
-    dims = [int(c.max()) + 1 for c in cube]
-    phase = (cube[0] & 1) * 4 + (cube[1] & 1) * 2 + (cube[2] & 1)
-    cube_id = (cube[0] * dims[1] + cube[1]) * dims[2] + cube[2]
-    order = np.argsort(phase * math.prod(dims) + cube_id, kind="stable")
-    return order, cube_id[order], phase[order]
+@ti.kernel
+def k_cube_keys(pos: V3, origin: vec3, inv: ti.f32, dims: ivec3, half: ivec3, key: I1, count: I1):
+    """key[p]: particle p's cube of edge 2h, numbered phase by phase (the phase is the parity
+    of the cube's coordinates; see the module docstring); count[key] += 1."""
+    per_phase = half.x * half.y * half.z
+    for p in pos:
+        c = ti.math.clamp(ti.cast(ti.floor((pos[p] - origin) * inv), ti.i32), 0, dims - 1)
+        phase = (c.x & 1) * 4 + (c.y & 1) * 2 + (c.z & 1)
+        k = phase * per_phase + ((c.x >> 1) * half.y + (c.y >> 1)) * half.z + (c.z >> 1)
+        key[p] = k
+        ti.atomic_add(count[k], 1)
+
+
+@ti.kernel
+def k_place(key: I1, start: I1, fill: I1, order: I1):
+    """order[start[key] ...]: each cube's particles (in no particular order yet)."""
+    for p in key:
+        k = key[p]
+        order[start[k] + ti.atomic_add(fill[k], 1)] = p
+
+
+@ti.kernel
+def k_sort_runs(start: I1, count: I1, order: I1):
+    """Each cube's run of `order` in increasing particle index (insertion sort: a run is a
+    cube's few dozen particles), so that the splat adds in the same order on every run."""
+    for k in count:
+        s0, n = start[k], count[k]
+        for a in range(1, n):
+            x = order[s0 + a]
+            b = a - 1
+            while b >= 0:
+                if order[s0 + b] <= x:
+                    break
+                order[s0 + b + 1] = order[s0 + b]
+                b -= 1
+            order[s0 + b + 1] = x
+
+
+@ti.kernel
+def k_take_v3(order: I1, src: V3, dst: V3):
+    for s in order:
+        dst[s] = src[order[s]]
+
+
+@ti.kernel
+def k_take_f1(order: I1, src: F1, dst: F1):
+    for s in order:
+        dst[s] = src[order[s]]
+
+
+@ti.kernel
+def k_target(lookup: I3, slot: I1, target: I3):
+    """target[block] = slot[lookup[block]], -1 where no block."""
+    for i, j, k in lookup:
+        b = lookup[i, j, k]
+        target[i, j, k] = slot[b] if b >= 0 else -1
+
+
+@ti.kernel
+def k_divide(momentum: R8, rows: R8, ids: I1, out: V3):
+    """out[b * 512 + node] = momentum / color at the node of block ids[b] (0 where the color is
+    at most 1e-6): the velocity field, node-major vectors."""
+    for b, r in ti.ndrange(ids.shape[0], B2):
+        c = rows[ids[b] * B2 + r]
+        for a in ti.static(range(3)):
+            m = momentum[(b * 3 + a) * B2 + r]
+            for q in ti.static(range(B)):
+                out[(b * B2 + r) * B + q][a] = m[q] / c[q] if c[q] > 1e-6 else 0.0
+
+
+def sort_by_cube(positions, origin: np.ndarray, top: np.ndarray, support: float):
+    """(order, start, count, per_phase): the particles counting-sorted by cube of edge 2h on
+    the device; cube keys run phase by phase, per_phase cubes each; start/count per key."""
+    n = positions.shape[0]
+    edge = 2.0 * support
+    dims = [int(v) + 1 for v in np.floor((top - origin) / edge)]
+    half = [(d + 1) // 2 for d in dims]
+    per_phase = math.prod(half)
+    key = D.empty(ti.i32, n)
+    count = D.zeros(ti.i32, 8 * per_phase)
+    k_cube_keys(positions, vec3(*map(float, origin)), 1.0 / edge, ti.math.ivec3(*dims), ti.math.ivec3(*half),
+                key, count)
+    start, _ = D.exclusive_scan(count, 8 * per_phase)
+    order = D.empty(ti.i32, n)
+    k_place(key, start, D.zeros(ti.i32, 8 * per_phase), order)
+    k_sort_runs(start, count, order)
+    return order, start, count, per_phase
 
 
 def mark_blocks(pos, base_block: np.ndarray, shape: tuple, origin: np.ndarray, cell: float, support: float):
     """(lookup, blocks): the blocks the particles' supports reach. lookup: int32 array of
     `shape`, block id or -1; blocks: (nb, 3) block coordinates in lookup order (x, y, z
     lexicographic)."""
-    used = ti.ndarray(ti.i32, shape=shape)
-    used.fill(0)
+    used = D.zeros(ti.i32, shape)
     k_mark(pos, vec3(*map(float, origin)), float(cell), float(support), used)
-    used = used.to_numpy().astype(bool)
+    used = D.host(used).astype(bool)
     lookup = np.full(shape, -1, np.int32)
     lookup[used] = np.arange(int(used.sum()), dtype=np.int32)
     return lookup, np.argwhere(used) + base_block
 
 
 class Splat:
-    """Particles sorted for the phased scatter onto the blocks their supports reach.
+    """Particles sorted on the device for the phased scatter onto the blocks their supports
+    reach.
 
-    color() is the color field on every block; velocity(v, ids, color) the velocity field
-    on the blocks `ids` only, from the particles that reach them."""
+    color() is the color field on every block (a device array of rows); velocity(v, ids, rows)
+    the velocity field on the blocks `ids` only, from the particles that reach them."""
 
     def __init__(self, positions: np.ndarray, volumes: np.ndarray, cell: float, support: float,
-                 kernel: str = "cubic"):
+                 kernel: str = "cubic", method: str = "auto"):
+        """method: "phased", "atomic" or "auto" (atomic on CUDA, else phased)."""
         self.cell, self.support = float(cell), float(support)
+        self.atomic = D.on_cuda() if method == "auto" else method == "atomic"
         self.kind = K.DENSITY_KERNELS[kernel]
         self.sigma = K.sigma(self.kind, self.support)
-        self.base_block, shape, self.origin = grid_frame(positions, cell, support)
-        self.order, self.cube_id, self.phase = phase_order(positions, self.origin, support)
-        # np.take, not positions[order]: 4 ms against 20 ms at 500k particles
-        self.pos = _vec3_ndarray(np.take(positions, self.order, axis=0))
-        self.vol = ti.ndarray(ti.f32, shape=len(self.order))
-        self.vol.from_numpy(np.ascontiguousarray(np.take(volumes, self.order), np.float32))
+        self.base_block, shape, self.origin, top = grid_frame(positions, cell, support)
+        self.n = len(positions)
+        raw = D.vec3s(positions)
+        if self.atomic:                     # any order will do
+            self.order = None
+            self.pos, self.vol = raw, D.upload(np.asarray(volumes), ti.f32)
+        else:
+            self.order, self.start, self.count, self.per_phase = sort_by_cube(raw, self.origin, top, support)
+            self.pos = D.empty(ti.f32, self.n, 3)
+            k_take_v3(self.order, raw, self.pos)
+            del raw
+            self.vol = D.empty(ti.f32, self.n)
+            k_take_f1(self.order, D.upload(np.asarray(volumes), ti.f32), self.vol)
         self.lookup, self.blocks = mark_blocks(self.pos, self.base_block, shape, self.origin, cell, support)
+        self.lookup_dev = D.upload(self.lookup)
 
     @property
     def n_blocks(self) -> int:
         return len(self.blocks)
 
-    def color(self) -> np.ndarray:
-        """(nb + 1, 8, 8, 8) float32; the last block stays zero (the stand-in for missing ones)."""
-        color = np.zeros((self.n_blocks + 1, B3), np.float32)
-        self._scatter(np.ones(len(self.order), bool), self.pos, self.lookup, color, False)
-        return color.reshape(-1, B, B, B)
+    def color(self):
+        """(nb + 1) * 64 rows of 8 nodes (a device array); the last block stays zero (the
+        stand-in for missing ones)."""
+        rows = D.zeros(ti.f32, (self.n_blocks + 1) * B2, B)
+        self._scatter(None, self.pos, self.lookup_dev, rows, False)
+        return rows
 
-    def velocity(self, velocities: np.ndarray, ids: np.ndarray, color: np.ndarray) -> np.ndarray:
-        """(len(ids) + 1, 8, 8, 8, 3) float32 on the blocks `ids` (zero where color <= 1e-6): a
-        view of component-major blocks, the layout the scatter writes."""
+    def velocity(self, velocities: np.ndarray, ids: np.ndarray, rows):
+        """The velocity field on the blocks `ids` (zero where the color is at most 1e-6), on
+        the device: (len(ids) + 1) * 512 vectors, node-major (block b's node n at b * 512 + n);
+        `rows`: the color (color()'s device array)."""
+        nv = len(ids)
         slot = np.full(self.n_blocks + 1, -1, np.int32)
-        slot[ids] = np.arange(len(ids), dtype=np.int32)
-        target = np.where(self.lookup >= 0, slot[self.lookup], -1).astype(np.int32)
-        touches = np.zeros(len(self.order), np.int32)
+        slot[ids] = np.arange(nv, dtype=np.int32)
+        target = D.empty(ti.i32, self.lookup.shape)
+        k_target(self.lookup_dev, D.upload(slot), target)
+        touches = D.empty(ti.i32, self.n)
         k_touches(self.pos, vec3(*map(float, self.origin)), self.cell, self.support, target, touches)
-        momentum = np.zeros((len(ids) + 1, 3 * B3), np.float32)
-        vel = _vec3_ndarray(np.take(velocities, self.order, axis=0))
-        self._scatter(touches.astype(bool), vel, target, momentum, True)
-        u = momentum.reshape(-1, 3, B, B, B)
-        c = np.concatenate([color[ids], np.zeros((1, B, B, B), np.float32)])[:, None]
-        np.divide(u, c, out=u, where=c > 1e-6)
-        u[np.broadcast_to(c <= 1e-6, u.shape)] = 0.0
-        return np.moveaxis(u, 1, -1)
+        momentum = D.zeros(ti.f32, (nv + 1) * 3 * B2, B)
+        vel = D.vec3s(velocities)
+        if not self.atomic:
+            sorted_vel = D.empty(ti.f32, self.n, 3)
+            k_take_v3(self.order, vel, sorted_vel)
+            vel = sorted_vel
+        self._scatter(touches, vel, target, momentum, True)
+        out = D.zeros(ti.f32, (nv + 1) * B3, 3)
+        if nv:
+            k_divide(momentum, rows, D.upload(np.asarray(ids, np.int32)), out)
+        return out
 
-    def _scatter(self, use: np.ndarray, vel, target: np.ndarray, out: np.ndarray, velocity_pass: bool) -> None:
-        """Add the particles `use` (in sorted order) into `out`: the color, or the momentum."""
-        idx = np.flatnonzero(use)
-        if len(idx) == 0:
+    def _scatter(self, touches, vel, target, out, velocity_pass: bool) -> None:
+        """Add the particles (those with `touches`, if given) into `out`: the color, or the
+        momentum; one launch per phase."""
+        if touches is None:
+            touches = D.zeros(ti.i32, 1)      # not read by the color pass
+        if self.atomic:
+            scale = FIXED
+            acc = D.zeros(ti.i64, out.shape[0] * B)
+            slabs = int(math.floor(2.0 * self.support / self.cell)) + 2
+            k_splat_atomic(self.pos, vel, self.vol, touches, slabs, vec3(*map(float, self.origin)), self.cell,
+                           self.support, target, acc, self.sigma * scale, self.kind, velocity_pass)
+            k_fixed_to_rows(acc, 1.0 / scale, out)
             return
-        # each cube's taking part particles as one index range into the sorted arrays (particles
-        # in between that reach no target block add nothing)
-        cube_id, phase = self.cube_id[idx], self.phase[idx]
-        starts = np.flatnonzero(np.r_[True, cube_id[1:] != cube_id[:-1]])
-        ends = np.r_[starts[1:], len(idx)]
-        first_all, last_all = idx[starts], idx[ends - 1] + 1
-        rows = out.reshape(-1, B)
         for ph in range(8):
-            sel = phase[starts] == ph
-            if not sel.any():
-                continue
-            k_splat(self.pos, vel, self.vol, first_all[sel].astype(np.int32), last_all[sel].astype(np.int32),
-                    vec3(*map(float, self.origin)), self.cell, self.support, target, rows, self.sigma,
-                    self.kind, velocity_pass)
-
-
-def _vec3_ndarray(a: np.ndarray):
-    out = ti.Vector.ndarray(3, ti.f32, shape=len(a))
-    out.from_numpy(np.ascontiguousarray(a, np.float32))
-    return out
+            k_splat(self.pos, vel, self.vol, self.start, self.count, touches, ph * self.per_phase,
+                    (ph + 1) * self.per_phase, vec3(*map(float, self.origin)), self.cell, self.support, target,
+                    out, self.sigma, self.kind, velocity_pass)

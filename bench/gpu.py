@@ -1,0 +1,224 @@
+#!/usr/bin/env python3
+"""Every GPU benchmark in one run, each section under its own time limit; prints the lines as
+they come and, at the end, one markdown table in bench/RESULTS.md's format. Run by
+bench/gpu.sh on a lent GPU machine (which also runs the GPU tests first).
+
+Sections (issue 21's targets in brackets):
+  solver    particle-steps/s, WCSPH and DFSPH at 1M and 4M particles on CUDA [WCSPH: 6e8 at
+            1M, 1e9 at 4M], and bytes per particle on the device
+  dambreak  DFSPH, 1M-particle dam break, simulated seconds per wall second [0.1]
+  profile   Taichi's kernel profiler over 20 DFSPH steps at 1M: the kernels that cost most
+  surface   the surfacer's splat and marching cubes at 500k and 4M particles [4M: 0.3 s]
+  stage     the sim stage through the CLI: jobs/dambreak.toml at 435k particles, 24 frames,
+            with the GPU's utilisation sampled every 100 ms by nvidia-smi [busy >= 95%]
+
+    python3 bench/gpu.py                      # all
+    python3 bench/gpu.py --only surface,stage
+"""
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[0] = str(ROOT)
+PY = sys.executable
+BACKEND, SCALE = "cuda", 1.0          # --dry: cpu, particle counts / 200 (to check the script here)
+ROWS: list[tuple[str, str, str]] = []          # (what, figure, target)
+
+
+def row(what: str, figure: str, target: str = "") -> None:
+    ROWS.append((what, figure, target))
+    print(f"ROW | {what} | {figure} | {target}", flush=True)
+
+
+def run(cmd: list[str], limit: float, env=None) -> tuple[int, str]:
+    """(returncode, output) of a child, killed after `limit` seconds (returncode 124)."""
+    try:
+        p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=limit, env=env)
+        return p.returncode, p.stdout + p.stderr
+    except subprocess.TimeoutExpired as exc:
+        out = (exc.stdout or b"").decode() if isinstance(exc.stdout, bytes) else (exc.stdout or "")
+        return 124, out
+
+
+def radius_for(n: int) -> float:
+    # bench/solver.py scales the block's spacing counts to n; its radius only sets the metres
+    return 0.006 * (50_232 / n) ** (1 / 3)
+
+
+def solver_section(limit: float) -> None:
+    for solver in ("wcsph", "dfsph"):
+        for n in (int(1_000_000 * SCALE), int(4_000_000 * SCALE)):
+            rc, out = run([PY, "bench/solver.py", "--only", "sphshot", "--solver", solver, "--backend", BACKEND,
+                           "--particles", str(n), "--radius", str(radius_for(n)), "--stop-at", "0.02",
+                           "--device-bytes"], limit / 4)
+            line = next((l for l in out.splitlines() if l.startswith("sphshot")), None)
+            print(line or out[-1500:], flush=True)
+            if line:
+                kv = dict(x.split("=", 1) for x in line.split()[1:] if "=" in x)
+                target = {("wcsph", 1_000_000): "6e8", ("wcsph", 4_000_000): "1e9"}.get((solver, round(n / SCALE)), "")
+                row(f"{solver.upper()} {int(kv['particles']):,} particles: particle-steps/s",
+                    f"{float(kv['particle_steps_per_s']):.3g} ({kv['ms_per_step']} ms/step, "
+                    f"{kv.get('device_bytes_per_particle', '?')} B/particle on the device)", target)
+            else:
+                row(f"{solver.upper()} {n:,} particles", f"failed (rc {rc})")
+
+
+def dambreak_section(limit: float) -> None:
+    n = int(1_000_000 * SCALE)
+    rc, out = run([PY, "bench/solver.py", "--only", "sphshot", "--solver", "dfsph", "--backend", BACKEND,
+                   "--particles", str(n), "--radius", str(radius_for(n)), "--stop-at", "0.25"], limit)
+    line = next((l for l in out.splitlines() if l.startswith("sphshot")), None)
+    print(line or out[-1500:], flush=True)
+    if line:
+        kv = dict(x.split("=", 1) for x in line.split()[1:] if "=" in x)
+        row("DFSPH 1M dam break, 0.25 s: simulated s per wall s",
+            f"{float(kv['sim_s_per_wall_s']):.3g} ({kv['steps']} steps, {kv['avg_pressure_iters']} + "
+            f"{kv['avg_divergence_iters']} iterations a step)", "0.1")
+    else:
+        row("DFSPH 1M dam break, 0.25 s", f"did not finish in {limit:.0f} s (rc {rc})", "0.1")
+
+
+PROFILE = r"""
+import sys, taichi as ti
+sys.path[0] = sys.argv[1]
+backend, n = sys.argv[2], int(sys.argv[3])
+ti.init(getattr(ti, backend), kernel_profiler=True, log_level=ti.WARN)
+import solver.backend as sb
+sb._current, sb._arch_name = (backend, 0), backend
+sys.argv = sys.argv[:1]
+from bench.solver import scene
+from pipeline.stages.sim import initial_state, make_solver, solver_params
+spec = scene(n, 0.006 * (50_232 / n) ** (1 / 3), "dfsph")
+params = solver_params(spec)
+s = make_solver(spec, params, initial_state(spec, params))
+for _ in range(5):
+    s.step()
+ti.sync(); ti.profiler.clear_kernel_profiler_info()
+for _ in range(20):
+    s.step()
+ti.sync()
+recs = {}
+for r in ti.profiler.get_kernel_profiler_records():
+    name = r.name.split("_c")[0]
+    recs[name] = recs.get(name, 0.0) + r.kernel_time
+total = sum(recs.values())
+for name, ms in sorted(recs.items(), key=lambda kv: -kv[1])[:8]:
+    print(f"PROFILE {name} {ms / 20:.3f} ms/step {100 * ms / total:.0f}%")
+print(f"PROFILE total {total / 20:.3f} ms/step in kernels")
+"""
+
+
+def profile_section(limit: float) -> None:
+    rc, out = run([PY, "-c", PROFILE, str(ROOT), BACKEND, str(int(1_000_000 * SCALE))], limit)
+    lines = [l for l in out.splitlines() if l.startswith("PROFILE")]
+    print("\n".join(lines) or out[-1500:], flush=True)
+    if lines:
+        top = ", ".join(f"{l.split()[1]} {l.split()[2]}" for l in lines[:4])
+        row("DFSPH 1M: kernel ms per step (top 4)", f"{lines[-1].split()[2]} in all; {top}")
+
+
+SURFACE = r"""
+import sys, time, numpy as np
+sys.path[0] = sys.argv[1]
+from solver.backend import init_taichi
+print("backend", init_taichi(sys.argv[2], 0))
+from surfacing.reconstruct import color_field, marching_cubes
+rng = np.random.default_rng(0)
+for n in (int(500_000 * float(sys.argv[3])), int(4_000_000 * float(sys.argv[3]))):
+    side = round(n ** (1 / 3)); ax = np.arange(side) * 0.02
+    P = (np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+         + rng.uniform(-0.003, 0.003, (side ** 3, 3))).astype(np.float32)
+    vel = rng.normal(size=P.shape).astype(np.float32); vol = np.full(len(P), 0.02 ** 3, np.float32)
+    marching_cubes(color_field(P[:5000], vel[:5000], vol[:5000], 0.0075, 0.04, 0.6), 0.6)   # compile
+    best = None
+    for _ in range(3):
+        t = time.perf_counter(); f = color_field(P, None, vol, 0.0075, 0.04, 0.6); t1 = time.perf_counter()
+        m = marching_cubes(f, 0.6); t2 = time.perf_counter()
+        tv = time.perf_counter(); fv = color_field(P, vel, vol, 0.0075, 0.04, 0.6); mv = marching_cubes(fv, 0.6)
+        t3 = time.perf_counter()
+        r = (t2 - t, t1 - t, t2 - t1, t3 - tv)
+        best = r if best is None or r[0] < best[0] else best
+    print(f"SURFACE {len(P)} mesh_s={best[0]:.3f} splat_s={best[1]:.3f} marching_cubes_s={best[2]:.3f} "
+          f"with_velocity_s={best[3]:.3f} tris={len(m.faces)}")
+"""
+
+
+def surface_section(limit: float) -> None:
+    rc, out = run([PY, "-c", SURFACE, str(ROOT), BACKEND, str(SCALE)], limit)
+    lines = [l for l in out.splitlines() if l.startswith("SURFACE")]
+    print("\n".join(lines) or out[-2500:], flush=True)
+    for l in lines:
+        kv = dict(x.split("=", 1) for x in l.split()[2:])
+        n = int(l.split()[1])
+        row(f"surfacer {n:,} particles: mesh s (splat + marching cubes; with velocities)",
+            f"{kv['mesh_s']} ({kv['splat_s']} + {kv['marching_cubes_s']}; {kv['with_velocity_s']}), "
+            f"{int(kv['tris']):,} triangles", "0.3" if n > 1_000_000 * SCALE else "")
+    if not lines:
+        row("surfacer", f"failed (rc {rc})")
+
+
+def stage_section(limit: float) -> None:
+    out_dir = Path(tempfile.mkdtemp(prefix="sphshot_gpu_stage_"))
+    util_log = out_dir / "util.csv"
+    smi = subprocess.Popen(["nvidia-smi" if BACKEND == "cuda" else "true", "--query-gpu=utilization.gpu", "--format=csv,noheader,nounits",
+                            "-lms", "100"], stdout=open(util_log, "w"), stderr=subprocess.DEVNULL)
+    t0 = time.perf_counter()
+    rc, out = run([PY, "-m", "pipeline.cli", "run", "jobs/dambreak.toml", "--stage", "sim",
+                   "--set", f"sim.backend=\"{BACKEND}\"", "--set",
+                   f"sim.particle_radius={0.0025 if SCALE == 1 else 0.01}",
+                   "--set", f"shot.frame_end={25 if SCALE == 1 else 3}", "--set", f"shot.output=\"{out_dir}\""], limit)
+    wall = time.perf_counter() - t0
+    smi.terminate()
+    smi.wait()
+    util = [int(x) for x in util_log.read_text().split() if x.strip().isdigit()]
+    # the samples while the sim stepped: from the first busy sample to the last
+    busy = [i for i, u in enumerate(util) if u > 0]
+    run_util = util[busy[0]:busy[-1] + 1] if busy else []
+    tail = [l for l in out.splitlines() if "particle-steps/s" in l or "error" in l.lower()][-3:]
+    print("\n".join(tail) or out[-1500:], flush=True)
+    if run_util:
+        mean = sum(run_util) / len(run_util)
+        over = sum(u >= 50 for u in run_util) / len(run_util)
+        row("sim stage, dambreak.toml at 435k particles, 24 frames (CLI, DFSPH)",
+            f"{wall:.1f} s wall (rc {rc}); GPU busy {mean:.0f}% mean, >= 50% in {100 * over:.0f}% of "
+            f"{len(run_util)} samples", ">= 95% busy")
+    else:
+        row("sim stage", f"rc {rc}, no GPU samples")
+
+
+SECTIONS = {"solver": (solver_section, 100), "dambreak": (dambreak_section, 45), "profile": (profile_section, 40),
+            "surface": (surface_section, 60), "stage": (stage_section, 100)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--only", default=",".join(SECTIONS))
+    ap.add_argument("--dry", action="store_true", help="on the CPU at 1/200 of the sizes: checks the script")
+    args = ap.parse_args()
+    global BACKEND, SCALE
+    if args.dry:
+        BACKEND, SCALE = "cpu", 1 / 200
+    t0 = time.perf_counter()
+    for name in args.only.split(","):
+        fn, limit = SECTIONS[name]
+        print(f"## {name} (limit {limit} s)", flush=True)
+        t = time.perf_counter()
+        try:
+            fn(limit)
+        except Exception as exc:            # one broken section must not cost the others
+            row(name, f"section failed: {type(exc).__name__}: {exc}")
+        print(f"## {name}: {time.perf_counter() - t:.0f} s", flush=True)
+    print("\n| what | figure | target |\n| --- | --- | --- |")
+    for what, fig, target in ROWS:
+        print(f"| {what} | {fig} | {target} |")
+    print(f"\n(all sections: {time.perf_counter() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
