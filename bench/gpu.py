@@ -103,10 +103,14 @@ ti.sync(); ti.profiler.clear_kernel_profiler_info()
 for _ in range(20):
     s.step()
 ti.sync()
+import io, contextlib, re
+buf = io.StringIO()
+with contextlib.redirect_stdout(buf):
+    ti.profiler.print_kernel_profiler_info("count")
 recs = {}
-for r in ti.profiler.get_kernel_profiler_records():
-    name = r.name.split("_c")[0]
-    recs[name] = recs.get(name, 0.0) + r.kernel_time
+for m in re.finditer(r"\[\s*[\d.]+%\s+[\d.]+ s\s+(\d+)x \|\s*[\d.]+\s+([\d.]+)\s+[\d.]+ ms\] (\S+)", buf.getvalue()):
+    name = m.group(3).split("_c")[0]
+    recs[name] = recs.get(name, 0.0) + int(m.group(1)) * float(m.group(2))
 total = sum(recs.values())
 for name, ms in sorted(recs.items(), key=lambda kv: -kv[1])[:8]:
     print(f"PROFILE {name} {ms / 20:.3f} ms/step {100 * ms / total:.0f}%")
@@ -149,7 +153,41 @@ for n in (int(500_000 * float(sys.argv[3])), int(4_000_000 * float(sys.argv[3]))
 """
 
 
+SURFACE_PROFILE = r"""
+import sys, io, contextlib, re, numpy as np, taichi as ti
+sys.path[0] = sys.argv[1]
+ti.init(getattr(ti, sys.argv[2]), kernel_profiler=True, log_level=ti.WARN)
+import solver.backend as sb
+sb._current, sb._arch_name = (sys.argv[2], 0), sys.argv[2]
+from surfacing.reconstruct import color_field, marching_cubes
+n = int(4_000_000 * float(sys.argv[3])); side = round(n ** (1 / 3)); ax = np.arange(side) * 0.02
+rng = np.random.default_rng(0)
+P = (np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+     + rng.uniform(-0.003, 0.003, (side ** 3, 3))).astype(np.float32)
+vel = rng.normal(size=P.shape).astype(np.float32); vol = np.full(len(P), 0.02 ** 3, np.float32)
+marching_cubes(color_field(P[:5000], vel[:5000], vol[:5000], 0.0075, 0.04, 0.6), 0.6)
+ti.sync(); ti.profiler.clear_kernel_profiler_info()
+marching_cubes(color_field(P, vel, vol, 0.0075, 0.04, 0.6), 0.6); ti.sync()
+buf = io.StringIO()
+with contextlib.redirect_stdout(buf):
+    ti.profiler.print_kernel_profiler_info("count")
+recs = {}
+for m in re.finditer(r"\[\s*[\d.]+%\s+[\d.]+ s\s+(\d+)x \|\s*[\d.]+\s+([\d.]+)\s+[\d.]+ ms\] (\S+)", buf.getvalue()):
+    name = m.group(3).split("_c")[0]
+    recs[name] = recs.get(name, 0.0) + int(m.group(1)) * float(m.group(2))
+for name, ms in sorted(recs.items(), key=lambda kv: -kv[1])[:8]:
+    print(f"SPROFILE {name} {ms:.1f} ms")
+print(f"SPROFILE total {sum(recs.values()):.1f} ms in kernels (with velocities)")
+"""
+
+
 def surface_section(limit: float) -> None:
+    rc, out = run([PY, "-c", SURFACE_PROFILE, str(ROOT), BACKEND, str(SCALE)], limit / 3)
+    lines = [l for l in out.splitlines() if l.startswith("SPROFILE")]
+    print("\n".join(lines) or out[-1500:], flush=True)
+    if lines:
+        top = ", ".join(f"{l.split()[1]} {l.split()[2]}" for l in lines[:4])
+        row("surfacer 4M with velocities: kernel ms (top 4)", f"{lines[-1].split()[2]} in all; {top}")
     rc, out = run([PY, "-c", SURFACE, str(ROOT), BACKEND, str(SCALE)], limit)
     lines = [l for l in out.splitlines() if l.startswith("SURFACE")]
     print("\n".join(lines) or out[-2500:], flush=True)
@@ -193,7 +231,7 @@ def stage_section(limit: float) -> None:
 
 
 SECTIONS = {"solver": (solver_section, 100), "dambreak": (dambreak_section, 45), "profile": (profile_section, 40),
-            "surface": (surface_section, 60), "stage": (stage_section, 100)}
+            "surface": (surface_section, 75), "stage": (stage_section, 100)}
 
 
 def main() -> None:

@@ -39,7 +39,7 @@ from .errors import Unstable
 from .neighbours import k_gather_f1
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
 from .sph import SPHSolver
-from .types import F1, F2, F4, I1, V3, Box, Consts, raise_max, vec3
+from .types import F1, F2, F4, I1, V3, Box, Consts, ivec2, raise_max, vec3
 from .wcsph import color_tension, morris
 
 # A particle with fewer neighbours than this is at a free surface and takes no part in the
@@ -56,7 +56,7 @@ MUELLER, AKINCI = 1, 2          # surface tension models
 
 @ti.kernel
 def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, alpha: F1, wall_grad: V3,
-                     verlet: I1, verlet_count: I1, near: I1, near_count: I1, cap: ti.i32,
+                     verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
                      c: Consts, box: Box, ftab: F2, ghost_t: F4, ghost_g: F4,
                      ctype: I1, cprm: F2, sdf: F1, kern: ti.template()):
     """Number density delta_i = sum_j W_ij + sum_b W_ib, density m_i delta_i and the factor
@@ -67,14 +67,14 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
         s = K.w_r2(kern, 0.0, h)
         grad_sum = vec3(0.0)
         sq = 0.0
-        base = i * cap
+        base = i * lay.x
         k = 0
         for m in range(verlet_count[i]):
-            j = verlet[base + m]
+            j = verlet[base + m * lay.y]
             rv = xi - position[j]
             r2 = rv.norm_sqr()
             inside = (r2 < h * h) & (r2 > 1e-18)
-            near[base + k] = j
+            near[base + k * lay.y] = j
             k += ti.select(inside, 1, 0)
             if inside:
                 s += K.w_r2(kern, r2, h)
@@ -94,45 +94,45 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
 
 @ti.func
 def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.template(),
-                 near_count: ti.template(), cap: ti.i32, wall_grad: ti.template(), h: ti.f32,
+                 near_count: ti.template(), lay: ivec2, wall_grad: ti.template(), h: ti.f32,
                  kern: ti.template()):
     """D delta_i / Dt = sum_j (v_i - v_j) . grad W_ij + v_i . sum_b grad W_ib (samples at rest)."""
     xi, vi = position[i], velocity[i]
     rate = vi.dot(wall_grad[i])
-    base = i * cap
+    base = i * lay.x
     for m in range(near_count[i]):
-        j = near[base + m]
+        j = near[base + m * lay.y]
         rv = xi - position[j]
         rate += (vi - velocity[j]).dot(K.grad_w(kern, rv, rv.norm(), h))
     return rate
 
 
 @ti.kernel
-def k_divergence_kappa(position: V3, velocity: V3, near: I1, near_count: I1, cap: ti.i32, alpha: F1,
+def k_divergence_kappa(position: V3, velocity: V3, near: I1, near_count: I1, lay: ivec2, alpha: F1,
                        wall_grad: V3, kappa: F1, error: F1, dt: ti.f32, h: ti.f32, kern: ti.template()):
     """kappa_i = alpha_i max(D delta_i / Dt, 0) / dt for particles with a full neighbourhood;
     error[0] gathers the sum of the rates they compress at."""
     for i in position:
-        rate = density_rate(i, velocity, position, near, near_count, cap, wall_grad, h, kern)
+        rate = density_rate(i, velocity, position, near, near_count, lay, wall_grad, h, kern)
         rate = ti.select((rate > 0.0) & (near_count[i] >= MIN_DIVERGENCE_NEIGHBOURS), rate, 0.0)
         kappa[i] = alpha[i] * rate / dt
         error[0] += rate
 
 
 @ti.kernel
-def k_density_kappa(position: V3, velocity: V3, number_density: F1, near: I1, near_count: I1, cap: ti.i32,
+def k_density_kappa(position: V3, velocity: V3, number_density: F1, near: I1, near_count: I1, lay: ivec2,
                     alpha: F1, wall_grad: V3, kappa: F1, error: F1, dt: ti.f32, c: Consts, kern: ti.template()):
     """kappa_i = alpha_i max(delta*_i - delta0, 0) / dt^2 with delta* = delta + dt D delta / Dt;
     error[0] gathers the sum of the compressions delta* - delta0 (clamped at 0)."""
     for i in position:
-        rate = density_rate(i, velocity, position, near, near_count, cap, wall_grad, c.h, kern)
+        rate = density_rate(i, velocity, position, near, near_count, lay, wall_grad, c.h, kern)
         excess = ti.max(number_density[i] + dt * rate - c.lattice, 0.0)
         kappa[i] = alpha[i] * excess / (dt * dt)
         error[0] += excess
 
 
 @ti.kernel
-def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I1, cap: ti.i32,
+def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I1, lay: ivec2,
                   kappa: F1, total: F1, wall_grad: V3, dt: ti.f32, h: ti.f32, ftab: F2, kern: ti.template()):
     """Equation (1) with this sweep's kappa; total += kappa (the step's pressure, and the next
     step's warm start)."""
@@ -140,9 +140,9 @@ def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I
         xi = position[i]
         ki = kappa[i]
         push = ki * wall_grad[i]
-        base = i * cap
+        base = i * lay.x
         for m in range(near_count[i]):
-            j = near[base + m]
+            j = near[base + m * lay.y]
             rv = xi - position[j]
             push += (ki + kappa[j]) * K.grad_w(kern, rv, rv.norm(), h)
         velocity[i] -= dt / ftab[fluid[i], F_MASS] * push
@@ -157,7 +157,7 @@ def k_scale(a: F1, factor: ti.f32):
 
 @ti.kernel
 def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
-                  near: I1, near_count: I1, cap: ti.i32, c: Consts, ftab: F2, stats: F1, dt_guess: ti.f32,
+                  near: I1, near_count: I1, lay: ivec2, c: Consts, ftab: F2, stats: F1, dt_guess: ti.f32,
                   normal: V3, kern: ti.template(), tension: ti.template()):
     """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
     raised to the largest |v + a dt_guess| (the CFL speed). Viscosity is the sum of
@@ -182,9 +182,9 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
         n = vec3(0.0)
         a_st = vec3(0.0)
         lap = K.lap_poly6(0.0, h) / di
-        base = i * cap
+        base = i * lay.x
         for m in range(near_count[i]):
-            j = near[base + m]
+            j = near[base + m * lay.y]
             rv = xi - position[j]
             r = rv.norm()
             dj = number_density[j]
@@ -219,15 +219,15 @@ def cohesion(r: ti.f32, h: ti.f32) -> ti.f32:
 
 
 @ti.kernel
-def k_surface_normals(position: V3, number_density: F1, near: I1, near_count: I1, cap: ti.i32, h: ti.f32,
+def k_surface_normals(position: V3, number_density: F1, near: I1, near_count: I1, lay: ivec2, h: ti.f32,
                       normal: V3, kern: ti.template()):
     """Akinci et al. 2013's surface normal n_i = h sum_j grad W_ij / delta_j (0 inside)."""
     for i in position:
         xi = position[i]
         n = vec3(0.0)
-        base = i * cap
+        base = i * lay.x
         for m in range(near_count[i]):
-            j = near[base + m]
+            j = near[base + m * lay.y]
             rv = xi - position[j]
             n += K.grad_w(kern, rv, rv.norm(), h) / number_density[j]
         normal[i] = h * n
@@ -296,7 +296,7 @@ class DFSPHSolver(SPHSolver):
 
     def compute_density(self) -> None:
         k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.wall_grad,
-                         self.verlet, self.verlet_count, self.near, self.near_count, self.nb_cap,
+                         self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
                          self.consts, self.box, self.ftab, self.ghost_t, self.ghost_g,
                          self.ctype, self.cprm, self.sdf, self.kern)
 
@@ -318,13 +318,13 @@ class DFSPHSolver(SPHSolver):
         return iterations, err
 
     def _apply(self, kappa, total, dt: float) -> None:
-        k_apply_kappa(self.position, self.velocity, self.fluid, self.near, self.near_count, self.nb_cap,
+        k_apply_kappa(self.position, self.velocity, self.fluid, self.near, self.near_count, self.lay,
                       kappa, total, self.wall_grad, dt, self.h, self.ftab, self.kern)
 
     def divergence_solve(self, dt: float) -> None:
         """Make the velocity field divergence-free where it compresses (step 2)."""
         def kappa_of():
-            k_divergence_kappa(self.position, self.velocity, self.near, self.near_count, self.nb_cap, self.alpha,
+            k_divergence_kappa(self.position, self.velocity, self.near, self.near_count, self.lay, self.alpha,
                                self.wall_grad, self.kappa, self.error, dt, self.h, self.kern)
         it, err = self._solve(kappa_of, self.kappa_divergence, WARM_START / dt, self.max_divergence_error / dt, dt)
         k_scale(self.kappa_divergence, dt)
@@ -335,7 +335,7 @@ class DFSPHSolver(SPHSolver):
         """Correct v* so the predicted number density is delta0 where compressed (step 6)."""
         def kappa_of():
             k_density_kappa(self.position, self.velocity, self.number_density, self.near, self.near_count,
-                            self.nb_cap, self.alpha, self.wall_grad, self.kappa, self.error, dt, self.consts,
+                            self.lay, self.alpha, self.wall_grad, self.kappa, self.error, dt, self.consts,
                             self.kern)
         it, err = self._solve(kappa_of, self.kappa_density, WARM_START / (dt * dt), self.max_density_error, dt)
         k_scale(self.kappa_density, dt * dt)
@@ -347,10 +347,10 @@ class DFSPHSolver(SPHSolver):
         guess = self.dt_prev or self.params.max_dt
         mode = (AKINCI if self.params.surface_tension_model == "akinci" else MUELLER) if self.tension else 0
         if mode == AKINCI:
-            k_surface_normals(self.position, self.number_density, self.near, self.near_count, self.nb_cap, self.h,
+            k_surface_normals(self.position, self.number_density, self.near, self.near_count, self.lay, self.h,
                               self.normal, self.kern)
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
-                      self.density, self.near, self.near_count, self.nb_cap, self.consts, self.ftab,
+                      self.density, self.near, self.near_count, self.lay, self.consts, self.ftab,
                       self.stats, guess, self.normal, self.kern, mode)
         self.vmax = float(self.stats.to_numpy()[0])
 

@@ -6,7 +6,7 @@ within h + skin of it at the reference positions the lists were built at.
 """
 import taichi as ti
 
-from .types import F1, I1, V3, ivec3, raise_max, vec3
+from .types import F1, I1, V3, ivec2, ivec3, vec3
 
 SCAN_BLOCK = 256
 # Cells are (h + skin) / CELL_DIV wide; a particle's list neighbours lie within CELL_DIV cells each way. With
@@ -98,10 +98,10 @@ def k_gather(order: I1, position: V3, ref: V3, velocity: V3, acceleration: V3, f
 
 
 @ti.kernel
-def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, reach: ti.f32,
+def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, reach: ti.f32,
                  start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3, stats: F1):
     """Verlet lists: every j != i within `reach` (= h + skin) of i, at the reference positions,
-    in grid order, at verlet[i * cap ...]. A particle with more than `cap` raises stats[2] to its
+    in grid order, entry m at verlet[i * lay.x + m * lay.y] (see SPHSolver.lay). A particle with more than `cap` raises stats[2] to its
     count, and the lists are built again larger. The candidate loop has no branch: in a
     disordered fluid, whether a candidate is a neighbour is a coin toss that a branch
     predictor keeps losing."""
@@ -109,7 +109,7 @@ def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, reach: ti.f
         xi = ref[i]
         ci = cell_of(xi, origin, inv_cell, dims)
         m = 0
-        base = i * cap
+        base = i * lay.x
         for dz, dy in ti.ndrange((-CELL_DIV, CELL_DIV + 1), (-CELL_DIV, CELL_DIV + 1)):
             cy, cz = ci.y + dy, ci.z + dz
             if 0 <= cy < dims.y and 0 <= cz < dims.z:
@@ -120,7 +120,7 @@ def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, reach: ti.f
                 c1 = flat(ivec3(x1, cy, cz), dims)
                 for j in range(start[c0], start[c1] + count[c1]):
                     r2 = (xi - ref[j]).norm_sqr()
-                    verlet[base + ti.min(m, cap - 1)] = j
+                    verlet[base + ti.min(m, cap - 1) * lay.y] = j
                     m += ti.select((r2 < reach * reach) & (j != i), 1, 0)
         verlet_count[i] = ti.min(m, cap)
         if m > cap:
@@ -128,9 +128,13 @@ def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, reach: ti.f
 
 
 @ti.kernel
-def k_max_displacement(position: V3, ref: V3, out: F1):
+def k_moved_beyond(position: V3, ref: V3, limit: ti.f32, flag: I1):
+    """flag[0] = 1 if some particle is `limit` or more from its reference position: a plain
+    store (every writer writes 1), where a maximum over all particles was one atomic per thread
+    and, on a GPU, cost as much as the density pass at 1M particles."""
     for i in position:
-        raise_max(out, 0, (position[i] - ref[i]).norm())
+        if (position[i] - ref[i]).norm() >= limit:
+            flag[0] = 1
 
 
 

@@ -23,10 +23,10 @@ import taichi as ti
 from . import kernels as K
 from .boundaries import collider_arrays, k_collide
 from .errors import TooLarge, Unstable
-from .neighbours import (CELL_DIV, SCAN_BLOCK, SKIN, k_count, k_fill_i, k_gather, k_max_displacement,
+from .neighbours import (CELL_DIV, SCAN_BLOCK, SKIN, k_count, k_fill_i, k_gather, k_moved_beyond,
                          k_neighbours, k_scan_add, k_scan_blocks, k_scan_sums, k_scatter)
 from .params import F_ETA, F_MU, F_RHO0, F_SIGMA, SolverParams
-from .types import Box, Consts, ivec3, vec3
+from .types import Box, Consts, ivec2, ivec3, vec3
 from .wcsph import k_density, k_forces, k_integrate, k_synced_velocity
 
 # A step shorter than this fraction of the acoustic CFL step means the state has blown up. The
@@ -67,6 +67,7 @@ class SPHSolver:
     """
 
     KEEP = 0.5      # particle centres stay this many radii from any wall or collider
+    INTERLEAVED_LISTS: bool | None = None     # None: by the backend (see _grow_neighbours)
 
     def __init__(self, params: SolverParams, state: dict[str, np.ndarray], time_s: float = 0.0,
                  step: int = 0, dt_prev: float = 0.0):
@@ -103,9 +104,10 @@ class SPHSolver:
         self.fill = ti.ndarray(ti.i32, self.n_cells)
         self.block_sum = ti.ndarray(ti.i32, (self.n_cells + SCAN_BLOCK - 1) // SCAN_BLOCK)
         self.stats = ti.ndarray(ti.f32, 3)    # max speed, max acceleration, list overflow
-        self.moved = ti.ndarray(ti.f32, 1)    # largest distance from the reference positions
+        self.moved = ti.ndarray(ti.i32, 1)    # 1: a particle moved skin/2 from its reference position
         # neighbour lists: room for 1.5x the fill lattice's pairs within h + skin, grown on overflow
         self.nb_cap = 0
+        self.on_cpu = ti.lang.impl.current_cfg().arch in (ti.x64, ti.arm64)
         self._grow_neighbours(int(1.5 * 4.0 / 3.0 * math.pi * ((h + self.skin) / params.spacing) ** 3) + 8)
         self.lists_built = 0
 
@@ -156,7 +158,7 @@ class SPHSolver:
             setattr(self, name + "_b", a)
         while True:
             self.stats.fill(0.0)
-            k_neighbours(self.ref, self.verlet, self.verlet_count, self.nb_cap, self.h + self.skin, self.start,
+            k_neighbours(self.ref, self.verlet, self.verlet_count, self.nb_cap, self.lay, self.h + self.skin, self.start,
                          self.count, self.origin, self.inv_cell, self.dims, self.stats)
             most = float(self.stats.to_numpy()[2])
             if most <= self.nb_cap:
@@ -168,9 +170,9 @@ class SPHSolver:
         """Rebuild the neighbour lists if a particle moved skin/2 from its reference position
         (two such particles may then be within h but not listed)."""
         if self._lists_valid:
-            self.moved.fill(0.0)
-            k_max_displacement(self.position, self.ref, self.moved)
-            if 2.0 * float(self.moved.to_numpy()[0]) < self.skin:
+            self.moved.fill(0)
+            k_moved_beyond(self.position, self.ref, 0.5 * self.skin, self.moved)
+            if int(self.moved.to_numpy()[0]) == 0:
                 return
         if not self._lists_from_ref:
             self.ref.copy_from(self.position)
@@ -184,6 +186,11 @@ class SPHSolver:
             raise TooLarge(f"{self.n:,} particles with up to {cap} neighbours each need neighbour lists "
                            f"of {self.n * cap:,} entries, over the limit of {MAX_LIST_ENTRIES:,}")
         self.nb_cap = cap
+        # list entry m of particle i at i * lay.x + m * lay.y: each particle's list contiguous on
+        # the CPU (one thread walks it through its cache), interleaved on a GPU (the threads of
+        # a warp read entry m of 32 particles from one memory line: coalesced loads)
+        interleave = (not self.on_cpu) if self.INTERLEAVED_LISTS is None else self.INTERLEAVED_LISTS
+        self.lay = ivec2(1, self.n) if interleave else ivec2(cap, 1)
         self.verlet = ti.ndarray(ti.i32, max(self.n * cap, 1))     # within h + skin at `ref`
         self.verlet_count = ti.ndarray(ti.i32, self.n)
         self.near = ti.ndarray(ti.i32, max(self.n * cap, 1))      # within h now (a subset)
@@ -191,7 +198,7 @@ class SPHSolver:
 
     def compute_density(self) -> None:
         k_density(self.position, self.fluid, self.number_density, self.density, self.pressure,
-                  self.verlet, self.verlet_count, self.near, self.near_count, self.nb_cap,
+                  self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
                   self.consts, self.box, self.ftab, self.ghost_t, self.ghost_g,
                   self.ctype, self.cprm, self.sdf, self.params.density_kind)
 
@@ -199,7 +206,7 @@ class SPHSolver:
         """Accelerations and the step's maxima."""
         self.stats.fill(0.0)
         k_forces(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
-                 self.density, self.pressure, self.near, self.near_count, self.nb_cap,
+                 self.density, self.pressure, self.near, self.near_count, self.lay,
                  self.consts, self.box, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom,
                  self.ctype, self.cprm, self.sdf, self.stats, self.params.pressure_kind, self.tension)
         s = self.stats.to_numpy()

@@ -18,7 +18,7 @@ import taichi as ti
 from . import kernels as K
 from .boundaries import boundary_sums, collider_sdf, domain_walls, hydrostatic_wall, nearest_walls, table3
 from .params import F_B, F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA
-from .types import F1, F2, F4, I1, V3, Box, Consts, raise_max, vec3
+from .types import F1, F2, F4, I1, V3, Box, Consts, ivec2, raise_max, vec3
 
 
 @ti.func
@@ -41,7 +41,7 @@ def color_tension(sigma: ti.f32, n, lap: ti.f32, rho: ti.f32, h: ti.f32, thresho
 
 @ti.kernel
 def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure: F1,
-              verlet: I1, verlet_count: I1, near: I1, near_count: I1, cap: ti.i32,
+              verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
               c: Consts, box: Box, ftab: F2, ghost_t: F4, ghost_g: F4,
               ctype: I1, cprm: F2, sdf: F1, dkern: ti.template()):
     """Density and pressure from the Verlet list; also copies the entries now within h (and not
@@ -50,13 +50,13 @@ def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure
     for i in position:
         xi = position[i]
         s = K.w_r2(dkern, 0.0, h)                 # the particle itself
-        base = i * cap
+        base = i * lay.x
         k = 0
         for m in range(verlet_count[i]):
-            j = verlet[base + m]
+            j = verlet[base + m * lay.y]
             r2 = (xi - position[j]).norm_sqr()
             s += K.w_r2(dkern, r2, h)
-            near[base + k] = j
+            near[base + k * lay.y] = j
             k += ti.select((r2 < h * h) & (r2 > 1e-18), 1, 0)
         near_count[i] = k
         # walls: the domain's six planes and the colliders, as boundary samples on the fill
@@ -74,7 +74,7 @@ def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure
 
 @ti.kernel
 def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1,
-             density: F1, pressure: F1, near: I1, near_count: I1, cap: ti.i32,
+             density: F1, pressure: F1, near: I1, near_count: I1, lay: ivec2,
              c: Consts, box: Box, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2,
              ctype: I1, cprm: F2, sdf: F1, stats: F1, pkern: ti.template(), tension: ti.template()):
     """Accelerations (pressure, viscosity, surface tension, gravity, walls); raises stats[0] to
@@ -91,9 +91,9 @@ def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_den
         a_eta = vec3(0.0)
         n = vec3(0.0)
         lap = K.lap_poly6(0.0, h) / di      # color field includes the particle itself
-        base = i * cap
+        base = i * lay.x
         for m in range(near_count[i]):        # the pairs within h (see k_density)
-            j = near[base + m]
+            j = near[base + m * lay.y]
             rv = xi - position[j]
             r = ti.sqrt(rv.norm_sqr())
             dj = number_density[j]

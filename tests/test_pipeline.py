@@ -319,3 +319,39 @@ def test_stage_timing_lines_count_from_each_stage_start():
     times = {ln.split(":")[1].strip(): float(ln.rsplit(" in ", 1)[1].split()[0])
              for ln in out.getvalue().splitlines() if " frame(s) in " in ln}
     assert times["sim"] >= 0.3 and 0.1 <= times["surface"] < 0.3, times
+
+
+def test_background_writer_keeps_order_and_reports_errors():
+    """The sim stage's writer: callbacks in submission order on the calling thread, at most
+    MAX_PENDING writes outstanding, a write's error raised at the next drain, and everything
+    submitted before an error still written when it closes quietly."""
+    import threading
+    import time as _time
+
+    from pipeline.stages.sim import BackgroundWriter
+
+    main, seen, written = threading.get_ident(), [], []
+
+    def slow(n):
+        _time.sleep(0.01)
+        written.append(n)
+        return n
+
+    w = BackgroundWriter()
+    for n in range(6):
+        w.submit(slow, n, done=lambda r: seen.append((r, threading.get_ident() == main)))
+        assert len(w._pending) <= w.MAX_PENDING
+    w.close()
+    assert seen == [(n, True) for n in range(6)] and written == list(range(6))
+
+    def fail(_):
+        raise OSError("disk full")
+
+    w = BackgroundWriter()
+    with pytest.raises(OSError, match="disk full"):   # at the submit if already failed, else here
+        w.submit(fail, 0)
+        w.drain()
+    w.submit(slow, 7)
+    w.submit(fail, 0)                  # (7 is still being written: nothing raises yet)
+    w.close(quiet=True)                # an error is already on its way: this one is dropped
+    assert written[-1] == 7

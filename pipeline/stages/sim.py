@@ -3,7 +3,8 @@
 The spec becomes the solver's parameters here (solver_params, fluid_blocks), and the solver's
 errors become one-line stage errors. Resume: the stage starts from the latest checkpoint at or
 before the first frame it must write (or from the initial fill), so a killed run continues
-where its last checkpoint left it.
+where its last checkpoint left it. Frames and checkpoints go to disk from a background thread
+while the solver steps on (BackgroundWriter), in order, each published atomically.
 """
 from __future__ import annotations
 
@@ -147,8 +148,52 @@ def build_solver(spec, paths, first_frame: int):
     return params, solver, None
 
 
-def write_checkpoint(paths, frame: int, solver) -> None:
-    write_h5(paths.checkpoint(frame), solver.state(), {"frame": frame, **solver.controller()})
+class BackgroundWriter:
+    """Writes files on one thread beside the solver, in submission order, so the GPU steps on
+    while a frame goes to disk; at most MAX_PENDING writes wait (each holds a frame's arrays).
+    `done(result)` callbacks and write errors come back on the calling thread, in order, at the
+    next submit, drain or close."""
+    MAX_PENDING = 2
+
+    def __init__(self):
+        from concurrent.futures import ThreadPoolExecutor
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sphshot-writer")
+        self._pending: list = []
+
+    def submit(self, fn, *args, done=None) -> None:
+        self._pending.append((self._pool.submit(fn, *args), done))
+        self._collect(wait_for=len(self._pending) - self.MAX_PENDING)
+
+    def drain(self) -> None:
+        """Wait for every write so far (raising the first write error)."""
+        self._collect(wait_for=len(self._pending))
+
+    def _collect(self, wait_for: int) -> None:
+        while self._pending and (wait_for > 0 or self._pending[0][0].done()):
+            future, done = self._pending.pop(0)
+            wait_for -= 1
+            result = future.result()
+            if done is not None:
+                done(result)
+
+    def close(self, quiet: bool = False) -> None:
+        """Wait for every write; `quiet`: while another error is on its way, drop write errors."""
+        try:
+            self.drain()
+        except Exception:
+            if not quiet:
+                raise
+        finally:
+            self._pool.shutdown(wait=True)
+
+
+def write_checkpoint(paths, frame: int, solver, writer: BackgroundWriter | None = None) -> None:
+    """The solver's state (read from the device now), written now or by `writer`."""
+    args = (paths.checkpoint(frame), solver.state(), {"frame": frame, **solver.controller()})
+    if writer is None:
+        write_h5(*args)
+    else:
+        writer.submit(write_h5, *args)
 
 
 def run(spec, frames, paths, progress) -> None:
@@ -178,6 +223,7 @@ def run(spec, frames, paths, progress) -> None:
         signal.signal(s, _request_stop)
     _STOP["signal"] = None
     wall0, steps0 = time.perf_counter(), solver.steps
+    writer = BackgroundWriter()
     try:
         for frame in range(start + 1, last + 1):
             try:
@@ -188,6 +234,7 @@ def run(spec, frames, paths, progress) -> None:
                 raise StageError(f"frame {frame:04d}: sim: {exc}; {FEWER}") from exc
             if not done:
                 # checkpoint named after the last finished frame, holding the exact mid-frame state
+                writer.drain()
                 write_checkpoint(paths, frame - 1, solver)
                 raise Interrupted(f"sim: stopped by {_STOP['signal']} during frame {frame:04d}; "
                                   f"checkpoint written, run again to resume")
@@ -196,10 +243,17 @@ def run(spec, frames, paths, progress) -> None:
             report = solver.frame_report()
             log_frame(frame, report)
             if frame in todo or not paths.sim_frame(frame).exists():
-                path = write_frame(paths.sim_frame(frame), data, frame_attrs(spec, params, frame, solver, report))
-                progress.frame_done(frame, [path])
+                # written beside the next frame's steps; reported once on disk
+                writer.submit(write_frame, paths.sim_frame(frame), data,
+                              frame_attrs(spec, params, frame, solver, report),
+                              done=lambda path, f=frame: progress.frame_done(f, [path]))
             if (frame - spec.shot.frame_start) % spec.shot.checkpoint_every == 0 or frame == last:
-                write_checkpoint(paths, frame, solver)
+                write_checkpoint(paths, frame, solver, writer)
+    except BaseException:
+        writer.close(quiet=True)       # the frames before the error still reach the disk
+        raise
+    else:
+        writer.close()
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
