@@ -203,35 +203,44 @@ def surface_section(limit: float) -> None:
 
 def stage_section(limit: float) -> None:
     out_dir = Path(tempfile.mkdtemp(prefix="sphshot_gpu_stage_"))
-    util_log = out_dir / "util.csv"
-    smi = subprocess.Popen(["nvidia-smi" if BACKEND == "cuda" else "true", "--query-gpu=utilization.gpu", "--format=csv,noheader,nounits",
-                            "-lms", "100"], stdout=open(util_log, "w"), stderr=subprocess.DEVNULL)
+    util_log, log = out_dir / "util.csv", out_dir / "stage.log"
+    smi = subprocess.Popen(["nvidia-smi" if BACKEND == "cuda" else "true", "--query-gpu=utilization.gpu",
+                            "--format=csv,noheader,nounits", "-lms", "100"],
+                           stdout=open(util_log, "w"), stderr=subprocess.DEVNULL)
+    frames = 25 if SCALE == 1 else 3
+    cmd = [PY, "-m", "pipeline.cli", "run", "jobs/dambreak.toml", "--stage", "sim",
+           "--set", f"sim.backend=\"{BACKEND}\"", "--set", f"sim.particle_radius={0.0025 if SCALE == 1 else 0.01}",
+           "--set", f"shot.frame_end={frames}", "--set", f"shot.output=\"{out_dir}\""]
     t0 = time.perf_counter()
-    rc, out = run([PY, "-m", "pipeline.cli", "run", "jobs/dambreak.toml", "--stage", "sim",
-                   "--set", f"sim.backend=\"{BACKEND}\"", "--set",
-                   f"sim.particle_radius={0.0025 if SCALE == 1 else 0.01}",
-                   "--set", f"shot.frame_end={25 if SCALE == 1 else 3}", "--set", f"shot.output=\"{out_dir}\""], limit)
+    with open(log, "w") as f:
+        child = subprocess.Popen(cmd, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT)
+        try:
+            rc = child.wait(timeout=limit)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            rc = 124
     wall = time.perf_counter() - t0
     smi.terminate()
     smi.wait()
     util = [int(x) for x in util_log.read_text().split() if x.strip().isdigit()]
-    # the samples while the sim stepped: from the first busy sample to the last
-    busy = [i for i, u in enumerate(util) if u > 0]
+    busy = [i for i, u in enumerate(util) if u > 0]          # from the first busy sample to the last
     run_util = util[busy[0]:busy[-1] + 1] if busy else []
-    tail = [l for l in out.splitlines() if "particle-steps/s" in l or "error" in l.lower()][-3:]
-    print("\n".join(tail) or out[-1500:], flush=True)
+    lines = log.read_text().splitlines()
+    sim_lines = [l for l in lines if "sim:" in l and "ALF" not in l]
+    print("\n".join(sim_lines[:3] + ["..."] + sim_lines[-4:]), flush=True)
+    done = sum("sim: frame" in l for l in sim_lines)
     if run_util:
         mean = sum(run_util) / len(run_util)
         over = sum(u >= 50 for u in run_util) / len(run_util)
-        row("sim stage, dambreak.toml at 435k particles, 24 frames (CLI, DFSPH)",
-            f"{wall:.1f} s wall (rc {rc}); GPU busy {mean:.0f}% mean, >= 50% in {100 * over:.0f}% of "
-            f"{len(run_util)} samples", ">= 95% busy")
+        row(f"sim stage, dambreak.toml at 435k particles, {frames - 1} frames (CLI, DFSPH)",
+            f"{wall:.1f} s wall (rc {rc}, {done} frames stepped); GPU busy {mean:.0f}% mean, >= 50% in "
+            f"{100 * over:.0f}% of {len(run_util)} samples", ">= 95% busy")
     else:
-        row("sim stage", f"rc {rc}, no GPU samples")
+        row("sim stage", f"{wall:.1f} s wall, rc {rc}, {done} frames stepped, no GPU samples")
 
 
 SECTIONS = {"solver": (solver_section, 100), "dambreak": (dambreak_section, 45), "profile": (profile_section, 40),
-            "surface": (surface_section, 75), "stage": (stage_section, 100)}
+            "surface": (surface_section, 75), "stage": (stage_section, 150)}
 
 
 def main() -> None:

@@ -33,6 +33,6 @@ $PY -c "import taichi, numpy, pydantic, h5py" || { echo "gpu.sh: packages missin
 echo "# $(date -u +%Y-%m-%dT%H:%MZ) $(nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo 'no nvidia-smi') $(git rev-parse --short HEAD 2>/dev/null)"
 if [ "${1:-}" != --dry ]; then
   echo "## GPU tests"
-  timeout 120 $PY -m pytest -q -p no:cacheprovider -m gpu tests/test_gpu.py 2>&1 | tail -n 15
+  timeout 120 $PY -m pytest -q -p no:cacheprovider --tb=short -W ignore -m gpu tests/test_gpu.py 2>&1 | tail -n 80
 fi
 timeout 420 $PY bench/gpu.py "$@"

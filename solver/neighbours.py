@@ -59,13 +59,13 @@ def k_scan_blocks(count: I1, start: I1, block_sum: I1, n: ti.i32):
 
 
 @ti.kernel
-def k_scan_sums(block_sum: I1, nb: ti.i32):
-    """Exclusive scan of the block totals (a few hundred values: one thread)."""
+def k_scan_serial(a: I1, n: ti.i32):
+    """Exclusive scan of up to SCAN_BLOCK values on one thread."""
     ti.loop_config(serialize=True)
     s = 0
-    for b in range(nb):
-        v = block_sum[b]
-        block_sum[b] = s
+    for b in range(n):
+        v = a[b]
+        a[b] = s
         s += v
 
 
@@ -73,6 +73,25 @@ def k_scan_sums(block_sum: I1, nb: ti.i32):
 def k_scan_add(start: I1, block_sum: I1, n: ti.i32):
     for c in range(n):
         start[c] += block_sum[c // SCAN_BLOCK]
+
+
+def exclusive_scan(count, start, n: int, buffer) -> None:
+    """start[i] = count[0] + ... + count[i - 1] for the first n entries: runs of SCAN_BLOCK in
+    parallel, then their totals scanned the same way (recursively: a single thread over 17k
+    totals took 2.3 ms a step at 1M particles on a GPU), then added back. buffer(level, size)
+    gives an int32 array of at least `size` for each level's totals."""
+    if n == 0:
+        return
+    nb = (n + SCAN_BLOCK - 1) // SCAN_BLOCK
+    sums = buffer(0, nb)
+    k_scan_blocks(count, start, sums, n)
+    if nb <= SCAN_BLOCK:
+        k_scan_serial(sums, nb)
+    else:
+        scanned = buffer(1, nb)
+        exclusive_scan(sums, scanned, nb, lambda level, size: buffer(level + 2, size))
+        sums = scanned
+    k_scan_add(start, sums, n)
 
 
 @ti.kernel

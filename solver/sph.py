@@ -23,8 +23,8 @@ import taichi as ti
 from . import kernels as K
 from .boundaries import collider_arrays, k_collide
 from .errors import TooLarge, Unstable
-from .neighbours import (CELL_DIV, SCAN_BLOCK, SKIN, k_count, k_fill_i, k_gather, k_moved_beyond,
-                         k_neighbours, k_scan_add, k_scan_blocks, k_scan_sums, k_scatter)
+from .neighbours import (CELL_DIV, SKIN, k_count, k_fill_i, k_gather, k_moved_beyond,
+                         k_neighbours, k_scatter, exclusive_scan)
 from .params import F_ETA, F_MU, F_RHO0, F_SIGMA, SolverParams
 from .types import Box, Consts, ivec2, ivec3, vec3
 from .wcsph import k_density, k_forces, k_integrate, k_synced_velocity
@@ -102,7 +102,7 @@ class SPHSolver:
         self.count = ti.ndarray(ti.i32, self.n_cells)
         self.start = ti.ndarray(ti.i32, self.n_cells)
         self.fill = ti.ndarray(ti.i32, self.n_cells)
-        self.block_sum = ti.ndarray(ti.i32, (self.n_cells + SCAN_BLOCK - 1) // SCAN_BLOCK)
+        self._scan_buffers: dict[int, object] = {}
         self.stats = ti.ndarray(ti.f32, 3)    # max speed, max acceleration, list overflow
         self.moved = ti.ndarray(ti.i32, 1)    # 1: a particle moved skin/2 from its reference position
         # neighbour lists: room for 1.5x the fill lattice's pairs within h + skin, grown on overflow
@@ -146,9 +146,7 @@ class SPHSolver:
         k_fill_i(self.count, 0)
         k_fill_i(self.fill, 0)
         k_count(self.ref, self.cell, self.count, self.origin, self.inv_cell, self.dims)
-        k_scan_blocks(self.count, self.start, self.block_sum, self.n_cells)
-        k_scan_sums(self.block_sum, self.block_sum.shape[0])
-        k_scan_add(self.start, self.block_sum, self.n_cells)
+        exclusive_scan(self.count, self.start, self.n_cells, self._scan_buffer)
         k_scatter(self.cell, self.start, self.fill, self.order)
         k_gather(self.order, self.position, self.ref, self.velocity, self.acceleration, self.fluid, self.id,
                  self.position_b, self.ref_b, self.velocity_b, self.acceleration_b, self.fluid_b, self.id_b)
@@ -179,6 +177,12 @@ class SPHSolver:
         self._lists_from_ref = False
         self.build_lists()
         self._lists_valid = True
+
+    def _scan_buffer(self, level: int, size: int):
+        """The cell scan's totals at one level (kept: the grid's size never changes)."""
+        if level not in self._scan_buffers:
+            self._scan_buffers[level] = ti.ndarray(ti.i32, max(size, 1))
+        return self._scan_buffers[level]
 
     def _grow_neighbours(self, cap: int) -> None:
         cap = -(-cap // 8) * 8

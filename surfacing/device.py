@@ -11,6 +11,8 @@ Vectors: a numpy array's last axis, a Taichi ndarray's element type.
 import numpy as np
 import taichi as ti
 
+from solver.neighbours import exclusive_scan as exclusive_scan_into
+
 vec3 = ti.math.vec3
 V3 = ti.types.ndarray(dtype=vec3, ndim=1)
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -18,7 +20,6 @@ I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
 R8 = ti.types.ndarray(dtype=ti.types.vector(8, ti.f32), ndim=1)     # rows of 8 grid nodes
-SCAN_BLOCK = 256
 
 
 _NP = {ti.i32: np.int32, ti.i64: np.int64, ti.f32: np.float32, ti.u8: np.uint8}
@@ -79,58 +80,13 @@ def host(a) -> np.ndarray:
     return a if isinstance(a, np.ndarray) else a.to_numpy()
 
 
-@ti.kernel
-def k_scan_blocks(count: I1, start: I1, block_sum: I1, n: ti.i32):
-    """Exclusive scan inside runs of SCAN_BLOCK entries, runs in parallel."""
-    for b in range((n + SCAN_BLOCK - 1) // SCAN_BLOCK):
-        s = 0
-        for k in range(SCAN_BLOCK):
-            c = b * SCAN_BLOCK + k
-            if c < n:
-                start[c] = s
-                s += count[c]
-        block_sum[b] = s
-
-
-@ti.kernel
-def k_scan_serial(a: I1, n: ti.i32):
-    ti.loop_config(serialize=True)
-    s = 0
-    for b in range(n):
-        v = a[b]
-        a[b] = s
-        s += v
-
-
-@ti.kernel
-def k_scan_add(start: I1, block_sum: I1, n: ti.i32):
-    for c in range(n):
-        start[c] += block_sum[c // SCAN_BLOCK]
-
-
 def exclusive_scan(count, n: int):
     """(start, total): start[i] = count[0] + ... + count[i - 1] for the first n entries, as a
-    device array, and the sum of all n. Runs of SCAN_BLOCK in parallel, their totals scanned
-    the same way (recursively), then added back."""
+    device array, and the sum of all n (solver/neighbours.py's scan)."""
     start = empty(ti.i32, n)
-    _scan_into(count, start, n)
+    exclusive_scan_into(count, start, n, lambda level, size: empty(ti.i32, size))
     total = 0 if n == 0 else int(start[n - 1]) + int(count[n - 1])
     return start, total
-
-
-def _scan_into(count, start, n: int) -> None:
-    if n == 0:
-        return
-    nb = (n + SCAN_BLOCK - 1) // SCAN_BLOCK
-    sums = empty(ti.i32, nb)
-    k_scan_blocks(count, start, sums, n)
-    if nb <= SCAN_BLOCK:
-        k_scan_serial(sums, nb)
-    else:
-        inner = empty(ti.i32, nb)
-        _scan_into(sums, inner, nb)
-        sums = inner
-    k_scan_add(start, sums, n)
 
 
 @ti.kernel
