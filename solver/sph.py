@@ -273,12 +273,13 @@ class SPHSolver:
         to self.timer under name."""
         return self._timed if timed else (lambda _name, fn, *args: fn(*args))
 
-    def _timed(self, name: str, fn, *args) -> None:
+    def _timed(self, name: str, fn, *args):
         ti.sync()
         t0 = time.perf_counter()
-        fn(*args)
+        out = fn(*args)
         ti.sync()
         self.timer.add(name, time.perf_counter() - t0)
+        return out
 
     def advance_to(self, t_target: float, should_stop=None) -> bool:
         """Step until t_target. Returns False if should_stop() asked to stop early."""

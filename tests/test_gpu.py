@@ -36,12 +36,16 @@ def run_on(backend: str, t_end: float, mesh: bool = False, solver: str = "dfsph"
 
 @pytest.mark.parametrize("solver", ["dfsph", "wcsph"])
 def test_cuda_matches_cpu_early_on(solver):
-    """Before the flow turns chaotic (first 20 ms), CUDA and CPU agree to float32 round-off
-    amplified over the steps (about 100 WCSPH, 5 DFSPH): positions within 1e-6 m."""
+    """Before the flow turns chaotic (first 20 ms), CUDA and CPU agree: WCSPH to float32
+    round-off amplified over about 100 steps (positions within 1e-6 m); DFSPH within a twentieth
+    of a radius (see below)."""
     gpu = run_on("cuda", 0.02, solver=solver)
     cpu = run_on("cpu", 0.02, solver=solver)
-    np.testing.assert_allclose(gpu["position"], cpu["position"], atol=1e-6)
-    np.testing.assert_allclose(gpu["density"], cpu["density"], rtol=1e-3)
+    # WCSPH: float32 round-off only. DFSPH's solves stop at an error bound, so round-off can
+    # change a step's sweep count and the velocities by one sweep's correction: on the H200
+    # positions differed by up to 1e-4 m (a hundredth of a radius) after 0.02 s
+    np.testing.assert_allclose(gpu["position"], cpu["position"], atol=1e-6 if solver == "wcsph" else 5e-4)
+    np.testing.assert_allclose(gpu["density"], cpu["density"], rtol=1e-3 if solver == "wcsph" else 1e-2)
 
 
 def test_cuda_mesh_collider_matches_cpu():
@@ -92,7 +96,10 @@ def test_cuda_surfacer_matches_cpu():
     np.testing.assert_allclose(gpu_color, cpu_color, atol=2e-5)
     assert abs(len(gpu_mesh.points) - len(cpu_mesh.points)) <= 1e-3 * len(cpu_mesh.points)
     if len(gpu_mesh.points) == len(cpu_mesh.points):
-        np.testing.assert_allclose(gpu_mesh.points, cpu_mesh.points, atol=1e-5)
+        # a vertex's place along its edge is (iso - c0) / (c1 - c0): where c1 - c0 is small, the
+        # colors' 1e-6 differences move it further (on the H200: 1 of 80,490 by 2.5e-5 m)
+        err = np.abs(gpu_mesh.points - cpu_mesh.points).max(1)
+        assert (err < 1e-5).mean() > 0.999 and err.max() < 0.00375 / 10, err.max()
     np.testing.assert_array_equal(gpu_ids, cpu_ids)
     solid = cpu_color[cpu_ids] > 1e-3
     np.testing.assert_allclose(gpu_vel[:-1][solid], cpu_vel[:-1][solid], atol=1e-4)   # speeds ~1 m/s

@@ -340,6 +340,23 @@ def test_a_blown_up_state_raises_instead_of_crawling():
         s.advance_to(1 / 24)
 
 
+def test_a_dfsph_blow_up_raises_instead_of_crawling():
+    """DFSPH's step is the CFL step on the fastest particle, so a blow-up does not stop it: it
+    shrinks with 1/v while the run crawls on (the example at 435k particles once took 21,675
+    steps for one frame). A particle flung at 1,000 m/s, over 10 times the shot's expected
+    largest speed (a few m/s here), is one clear error."""
+    from solver.errors import Unstable
+
+    def fling(state):
+        state["velocity"][0] = (1000.0, 0.0, 0.0)
+
+    _spec, params, s = make_solver(tiny_spec(((0.3, 0.1, 0.1), (0.5, 0.3, 0.3)), sim={"particle_radius": 0.02}),
+                                   mutate=fling)
+    assert params.speed_of_sound < 100
+    with pytest.raises(Unstable, match="over 10 times the shot's expected largest speed"):
+        s.advance_to(1 / 24)
+
+
 # ---------------------------------------------------------------------------- mesh colliders
 def ball_mesh(path, nsub=4):
     """A unit icosphere written as OBJ; its triangles are chords of the sphere."""
