@@ -246,7 +246,7 @@ SECTIONS = {"solver": (solver_section, 100), "dambreak": (dambreak_section, 45),
             # the same run as the first GPU measurement (WCSPH then), and DFSPH at a bound that
             # held at this resolution on the CPU (the default 0.1% blows up: see RESULTS.md)
             "stage_wcsph": (lambda limit: stage_section(limit, "wcsph"), 100),
-            "stage_dfsph": (lambda limit: stage_section(limit, "dfsph", ("sim.max_density_error=0.0002",)), 120)}
+            "stage_dfsph": (lambda limit: stage_section(limit, "dfsph", ("sim.max_density_error=0.0002",)), 95)}
 
 
 def main() -> None:
