@@ -15,7 +15,8 @@ EPILOG = f"""\
 exit codes:
   {errors.EXIT_OK}  every requested frame is valid on disk
   {errors.EXIT_FAILURE}  runtime failure (unstable solver, failed frame, I/O error)
-  {errors.EXIT_USAGE}  bad job file, --set, frame range or arguments; nothing was written
+  {errors.EXIT_USAGE}  bad job file, --set, frame range or arguments, or a shot estimated to need more memory
+     or disk than there is (see validate); nothing was written
   {errors.EXIT_STALE}  cached frames were made with other parameters (use --force or a new shot.version)
   {errors.EXIT_WAITING}  waiting on an upstream frame (sim frame N) or on another worker's sim; retry later
   {errors.EXIT_INTERRUPTED}  interrupted (SIGTERM/SIGUSR1/SIGINT) after a checkpoint; run again to resume
@@ -35,14 +36,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"sphshot {_version()}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
 
+    def max_memory(sp):
+        sp.add_argument("--max-memory", type=_gigabytes, metavar="GB",
+                        help="the memory the shot may use (default: what this machine has available "
+                             "now); a shot estimated to need more stops before anything is allocated")
+
     def common(sp):
         sp.add_argument("job", help="shot job file (TOML)")
         sp.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a job key with a TOML value, e.g. --set sim.particle_radius=0.02")
 
-    v = sub.add_parser("validate", help="check a job file; print one line per problem",
+    v = sub.add_parser("validate", help="check a job file and that the shot fits this machine; print one "
+                                         "line per problem and the memory and disk estimate",
                        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     common(v)
+    max_memory(v)
 
     r = sub.add_parser("run", help="run stages over frames, skipping frames already valid",
                        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -53,6 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run N frames from the start frame given by --frames, CUE_IFRAME or "
                         "SLURM_ARRAY_TASK_ID (farm array tasks)")
     r.add_argument("--force", action="store_true", help="recompute frames even when valid")
+    max_memory(r)
     r.add_argument("--executor", choices=("serial", "dask"), default="serial",
                    help="serial: stage after stage here; dask: surface and render tasks fan out over "
                         "a Dask cluster, streaming behind the sim (default: serial)")
@@ -95,6 +104,27 @@ def _positive(text: str) -> int:
     return value
 
 
+def _gigabytes(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise UsageError(f"--max-memory: expected a number of gigabytes, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise UsageError(f"--max-memory: expected a positive number of gigabytes, got {text}")
+    return value * 2 ** 30
+
+
+def _preflight(spec, args):
+    """The shot's memory and disk estimate; TooBig (exit 2) when it does not fit."""
+    from .errors import TooBig
+    from .estimate import estimate, too_big
+    est = estimate(spec)
+    problem = too_big(spec, est, args.max_memory)
+    if problem:
+        raise TooBig(f"{args.job}: {problem}")
+    return est
+
+
 def _stages(choice: str) -> list[str]:
     return list(STAGES) if choice == "all" else [choice]
 
@@ -110,9 +140,11 @@ def _load(args):
 
 def cmd_validate(args) -> int:
     spec = _load(args)
+    est = _preflight(spec, args)
     print(f"{args.job}: ok ({spec.shot.name} v{spec.shot.version:03d}, frames "
           f"{spec.shot.frame_start}-{spec.shot.frame_end}, {len(spec.fluids)} fluid(s), "
           f"{len(spec.colliders)} collider(s))")
+    print(f"{args.job}: estimate: {est.line()}")
     return 0
 
 
@@ -145,6 +177,7 @@ def cmd_run(args) -> int:
     from .runner import run_stages
     spec = _load(args)
     frames, source = select_frames(args.frames, args.chunk, spec.frames, os.environ)
+    _preflight(spec, args)
     kind = "dask" if args.scheduler else args.executor
     if args.workers and (kind != "dask" or args.scheduler):
         raise UsageError("--workers: only with --executor dask and no --scheduler")

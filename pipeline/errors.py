@@ -34,6 +34,11 @@ class SpecError(SphshotError):
         super().__init__("\n".join(f"{source}: {p}" for p in problems))
 
 
+class TooBig(SphshotError):
+    """The shot's estimated memory or disk is beyond this machine (or --max-memory)."""
+    exit_code = EXIT_USAGE
+
+
 class StaleCacheError(SphshotError):
     exit_code = EXIT_STALE
 

@@ -83,6 +83,15 @@ CORPUS = [
      "render.camera: up must not be along the view direction"),
     ("unset-variable-in-output", GOOD.replace('output = "out"', 'output = "$SPHSHOT_UNSET_VAR/out"'), [],
      "shot.output: expected environment variables that are set, got $SPHSHOT_UNSET_VAR unset"),
+    # the pre-flight estimate, before anything is allocated (issue 19: 100M particles grew past
+    # 16 GB in 40 s; 1e-300 was a traceback)
+    ("too-many-particles", GOOD, ["--set", "sim.particle_radius=0.0002"],
+     "over the"),
+    ("absurd-radius", GOOD, ["--set", "sim.particle_radius=1e-300"],
+     "the shot needs over 1e15 particles"),
+    ("max-memory-below-the-shot", GOOD, ["--set", "sim.particle_radius=0.004", "--max-memory", "0.35"],
+     "over the 0.35 GB --max-memory; change sim.particle_radius = 0.004 m"),
+    ("max-memory-not-a-number", GOOD, ["--max-memory", "lots"], "--max-memory: expected a number of gigabytes"),
 ]
 
 
@@ -103,9 +112,32 @@ def test_user_error(tmp_path, capsys, case, text, extra, expect, command):
     assert expect in lines[0], f"{case}: expected {expect!r} in {lines[0]!r}"
     assert lines[0].startswith("sphshot: error:")
     # the line names where the problem is: the job file, or the command-line option
-    assert any(s in lines[0] for s in (str(job), "--set", "--frames", "argument --stage")), \
+    assert any(s in lines[0] for s in (str(job), "--set", "--frames", "argument --stage", "--max-memory")), \
         f"{case}: the line should name the job file or the option: {lines[0]!r}"
     assert not (tmp_path / "out").exists(), f"{case}: something was written"
+
+
+def test_estimate_counts_the_fill_and_validate_prints_it(tmp_path, capsys):
+    """The estimate's particle count is the fill lattice's (solver/fill.py) for the example
+    jobs, less nothing but what colliders take (within 2 %); validate prints the estimate."""
+    from pathlib import Path
+
+    from pipeline.estimate import estimate
+    from pipeline.stages.sim import fluid_blocks, solver_params
+    from solver.fill import fill_blocks
+
+    jobs = Path(__file__).resolve().parents[1] / "jobs"
+    for job in sorted(jobs.glob("*.toml")):
+        spec = load_spec(job)
+        n = len(fill_blocks(solver_params(spec), fluid_blocks(spec), settle=False)["position"])
+        est = estimate(spec)
+        assert n <= est.particles <= 1.02 * n, (job.name, n, est.particles)
+        assert est.sim > 0 and est.surface > 0 and est.disk > 0
+    job = tmp_path / "job.toml"
+    job.write_text(GOOD)
+    assert main(["validate", str(job)]) == 0
+    out = capsys.readouterr().out
+    assert "estimate: about 490 particles; memory about" in out, out
 
 
 def test_corpus_is_large_enough():

@@ -1,0 +1,116 @@
+"""Pre-flight estimate of a shot's memory and disk, from the spec alone (nothing allocated).
+
+Figures per unit, measured (bench/RESULTS.md, eleventh session):
+- solver: about 1,000 bytes a particle on the compute device (973 WCSPH, 1,025 DFSPH on the
+  H200; the two neighbour lists are ~800 of it), plus host copies of the state for frames and
+  checkpoints: SIM_BYTES per particle in all;
+- surfacing: about 36 grid nodes a particle at the default 0.75 r cell (18.0M nodes for 502,606
+  particles) and about 26 bytes a node at the peak (color, velocity band, marching cubes'
+  arrays: 720 MB for the 500k frame with velocities, 250 MB of it Python and Taichi);
+- a mesh collider's distance grid: OpenVDB voxelises the whole mesh, not only the part inside
+  the domain: 12 bytes a voxel over the mesh's own box;
+- disk: a sim frame is 37 bytes a particle (position, velocity, density, pressure, id, fluid),
+  a checkpoint about 60, a surface frame (mesh and VDB grids) about 40.
+"""
+from __future__ import annotations
+
+import math
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+SIM_BYTES = 1_200              # per particle: device arrays and host copies
+NODE_BYTES = 26                # per surfacing grid node, at the peak of one frame
+NODES_PER_CELL_VOLUME = 1.9    # blocks reach a support beyond the fluid: 36 nodes/particle at 0.75 r
+VOXEL_BYTES = 12               # per collider distance-grid voxel while OpenVDB builds it
+BASE_BYTES = 300 * 2 ** 20     # Python, NumPy, Taichi, VTK loaded
+FRAME_BYTES, CHECKPOINT_BYTES, SURFACE_BYTES = 37, 60, 40     # on disk, per particle
+
+
+@dataclass(frozen=True)
+class Estimate:
+    particles: float
+    sim: float                 # bytes while the sim stage runs
+    surface: float             # bytes while one frame is surfaced
+    colliders: float           # bytes while the mesh colliders' distance grids are built
+    disk: float                # bytes the whole shot writes
+
+    @property
+    def memory(self) -> float:
+        """The peak: stages run one after another, the colliders' grids while the sim starts."""
+        return BASE_BYTES + max(self.sim + self.colliders, self.surface)
+
+    def line(self) -> str:
+        return (f"{_count(self.particles)} particles; memory {_gb(self.memory)} (sim {_gb(self.sim)}, "
+                f"surfacing {_gb(self.surface)}, collider grids {_gb(self.colliders)}); disk {_gb(self.disk)}")
+
+
+def estimate(spec) -> Estimate:
+    r = spec.sim.particle_radius
+    d = 2.0 * r
+    particles = 0.0
+    for f in spec.fluids:
+        for b in f.blocks:
+            # the fill's lattice: floor(extent / 2r) a side, at least one (solver/fill.py)
+            particles += math.prod(max(math.floor(e / d + 1e-6), 1) if e / d < 1e15 else e / d
+                                   for e in (hi - lo for lo, hi in zip(b.min, b.max)))
+    cell = spec.surface_cell_m
+    nodes = particles * (d / cell) ** 3 * NODES_PER_CELL_VOLUME
+    voxels = 0.0
+    for ci, col in enumerate(spec.colliders):
+        if col.type == "mesh":
+            verts, _tris = spec.collider_mesh(ci)
+            pad = spec.sdf_pad(col)
+            extent = verts.max(0) - verts.min(0) + 2 * pad
+            voxels += math.prod(float(e) / spec.collider_voxel_m(col) + 2 for e in extent)
+    frames = len(spec.frames)
+    checkpoints = frames / max(spec.shot.checkpoint_every, 1) + 2
+    disk = particles * (frames * (FRAME_BYTES + SURFACE_BYTES) + checkpoints * CHECKPOINT_BYTES)
+    return Estimate(particles, particles * SIM_BYTES, nodes * NODE_BYTES, voxels * VOXEL_BYTES, disk)
+
+
+def available_memory() -> float:
+    """Bytes this machine can give now (MemAvailable), or its physical memory."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+
+
+def free_disk(path: Path) -> float:
+    """Free bytes where `path` will be (its nearest existing folder)."""
+    p = Path(path)
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return float(shutil.disk_usage(p).free)
+
+
+def too_big(spec, est: Estimate, max_memory: float | None = None) -> str | None:
+    """One line saying why the shot cannot run here, or None."""
+    limit = max_memory if max_memory is not None else available_memory()
+    where = "--max-memory" if max_memory is not None else "available on this machine"
+    if BASE_BYTES > limit:
+        return f"--max-memory {_gb(limit, '')} is less than Python and the libraries take ({_gb(BASE_BYTES)})"
+    if est.memory > limit:
+        culprit = "the mesh colliders' voxel_size (or their scale)" if est.colliders > est.sim + est.surface \
+            else f"sim.particle_radius = {spec.sim.particle_radius:g} m (a larger radius or smaller fluid blocks)"
+        return f"the shot needs {est.line()}: over the {_gb(limit, '')} {where}; change {culprit}"
+    free = free_disk(spec.output_root)
+    if est.disk > free:
+        return (f"the shot would write {_gb(est.disk)} to {spec.output_root}, which has {_gb(free, '')} "
+                f"free; use a larger sim.particle_radius, fewer frames or another shot.output")
+    return None
+
+
+def _gb(n: float, about: str = "about ") -> str:
+    if not math.isfinite(n) or n >= 1e15:
+        return "over a petabyte"
+    return f"{about}{n / 2 ** 30:.3g} GB" if n >= 2 ** 30 / 10 else f"{about}{n / 2 ** 20:.3g} MB"
+
+
+def _count(n: float) -> str:
+    return "over 1e15" if not math.isfinite(n) or n >= 1e15 else f"about {n:,.0f}"
