@@ -96,6 +96,49 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
+# ------------------------------------------------------------------------------------ stamps
+def stamp_path(file: Path) -> Path:
+    """The stamp beside a published file (hidden: .<name>.stamp)."""
+    return file.with_name(f".{file.name}.stamp")
+
+
+def file_digest(file: Path) -> tuple[int, str]:
+    """(size, blake2b hex digest) of a file, read in 1 MiB pieces."""
+    h, size = hashlib.blake2b(digest_size=16), 0
+    with open(file, "rb") as fh:
+        for piece in iter(lambda: fh.read(1 << 20), b""):
+            h.update(piece)
+            size += len(piece)
+    return size, h.hexdigest()
+
+
+def stamp(file: Path, stage_hash: str) -> None:
+    """Record beside a just-published frame file what it was made from (the stage's parameter
+    hash, chained to its upstream stages') and what was written (size and digest). A frame
+    counts as valid only when its stamps match its files and the current parameters."""
+    size, digest = file_digest(file)
+    write_text_atomic(stamp_path(file), json.dumps({"hash": stage_hash, "size": size, "blake2b": digest}))
+
+
+def check_file(file: Path, stage_hash: str, verify: bool = False) -> str:
+    """'missing'; 'corrupt' (no stamp, or not the size stamped -- a truncated copy, a write that
+    failed without an error -- or with `verify` not the digest); 'stale' (made with other
+    parameters); or 'valid'."""
+    try:
+        size = file.stat().st_size
+    except FileNotFoundError:
+        return "missing"
+    try:
+        record = json.loads(stamp_path(file).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return "corrupt"
+    if not isinstance(record, dict) or record.get("size") != size:
+        return "corrupt"
+    if verify and file_digest(file)[1] != record.get("blake2b"):
+        return "corrupt"
+    return "valid" if record.get("hash") == stage_hash else "stale"
+
+
 # ------------------------------------------------------------------------------------ hashes
 def _digest(obj) -> str:
     blob = json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
@@ -177,6 +220,19 @@ class ShotPaths:
         """Every file a stage owns for one frame; the frame is valid when all exist."""
         return _STAGES[stage].frame_files(self, frame)
 
+    def frame_leftovers(self, stage: str, frame: int) -> list[Path]:
+        """Files this frame may hold from other settings of the same stage (a .vdb once
+        surface.grids is empty, meshes in another format or split otherwise), which a
+        recomputed frame replaces: the frame's files under every layout, less the current."""
+        if stage != "surface":
+            return []
+        current = set(self.frame_files(stage, frame))
+        d, others = self.root / "surface", [self.surface_vdb(frame)]
+        for ext in ("ply", "obj", "vtu"):
+            others.append(d / f"{self.name}.{frame:04d}.{ext}")
+            others += [d / f"{self.name}.{f}.{frame:04d}.{ext}" for f in self.fluids]
+        return [p for p in others if p not in current and p.exists()]
+
     def checkpoints(self) -> list[int]:
         """Frames that have a published checkpoint, ascending."""
         out = []
@@ -201,6 +257,12 @@ class StageScan:
     missing: tuple[int, ...]
     stale: tuple[int, ...]      # files exist but were made with other parameters
     hash_changed: bool          # the manifest holds another hash for this stage
+    corrupt: tuple[int, ...] = ()   # files exist but are not what was stamped (or never were)
+
+    @property
+    def complete(self) -> bool:
+        """Every frame scanned is valid."""
+        return not (self.missing or self.stale or self.corrupt)
 
 
 class ShotCache:
@@ -216,18 +278,18 @@ class ShotCache:
     def recorded_hash(self, stage: str) -> str | None:
         return self.manifest.get("stages", {}).get(stage, {}).get("hash")
 
-    def scan(self, stage: str, frames) -> StageScan:
+    def scan(self, stage: str, frames, verify: bool = False) -> StageScan:
+        """Each frame by its files' stamps (check_file): missing, corrupt, stale or valid;
+        `verify` also compares each file's digest with its stamp's (reads every byte)."""
         recorded, current = self.recorded_hash(stage), self.hashes[stage]
         changed = recorded is not None and recorded != current
-        valid, missing, stale = [], [], []
+        found: dict[str, list[int]] = {"valid": [], "missing": [], "stale": [], "corrupt": []}
         for f in frames:
-            if not all(p.exists() for p in self.paths.frame_files(stage, f)):
-                missing.append(f)
-            elif recorded == current:
-                valid.append(f)
-            else:
-                stale.append(f)   # present but the manifest says other params (or says nothing)
-        return StageScan(stage, tuple(valid), tuple(missing), tuple(stale), changed)
+            states = {check_file(p, current, verify) for p in self.paths.frame_files(stage, f)}
+            state = next(s for s in ("missing", "corrupt", "stale", "valid") if s in states)
+            found[state].append(f)
+        return StageScan(stage, tuple(found["valid"]), tuple(found["missing"]), tuple(found["stale"]), changed,
+                         tuple(found["corrupt"]))
 
     def record(self, stage: str) -> None:
         """Write the stage's current hash into the manifest (atomic; idempotent across workers)."""
@@ -267,12 +329,12 @@ def remove_if_empty(paths: ShotPaths) -> bool:
     return not root.exists()
 
 
-def clear_stage(paths: ShotPaths, stage: str) -> None:
-    """Remove a stage's published files (used by --force when its parameters changed)."""
-    folders = [paths.stage_dir(stage)] + ([paths.checkpoint_dir] if stage == "sim" else [])
-    for folder in folders:
-        if folder.is_dir():
-            for p in folder.iterdir():
-                if p.is_file() and p.suffix != ".claim":   # live workers' claims stay theirs
-                    with contextlib.suppress(FileNotFoundError):
-                        p.unlink()
+def clear_checkpoints(paths: ShotPaths) -> None:
+    """Remove the sim's checkpoints (--force after the sim's parameters changed: a resume from
+    them would continue the old run). Frames are never removed: stale ones stay, shown as
+    stale, until recomputed."""
+    if paths.checkpoint_dir.is_dir():
+        for p in paths.checkpoint_dir.iterdir():
+            if p.is_file():
+                with contextlib.suppress(FileNotFoundError):
+                    p.unlink()

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
-from .cache import HOST, ShotPaths, pid_alive
+from .cache import HOST, ShotPaths, check_file, pid_alive
 
 CLAIM_REFRESH_S = 15.0
 CLAIM_STALE_S = 90.0
@@ -114,6 +114,7 @@ class FrameClaims:
     stage: str
     frames: list[int]
     since: float | None = None
+    stage_hash: str | None = None
     deferred: list[int] = field(default_factory=list)   # held by another live worker
     by_others: list[int] = field(default_factory=list)  # found done by another worker
     _held: int | None = None
@@ -141,10 +142,14 @@ class FrameClaims:
 
     # ----------------------------------------------------------------------------- iteration
     def done(self, frame: int) -> bool:
+        """The frame's files are published (and, given stage_hash, stamped valid for it: a
+        corrupt or stale frame is not done) and, with `since`, newer than that."""
         files = self.paths.frame_files(self.stage, frame)
         try:
             mtimes = [p.stat().st_mtime for p in files]
         except FileNotFoundError:
+            return False
+        if self.stage_hash is not None and any(check_file(p, self.stage_hash) != "valid" for p in files):
             return False
         return self.since is None or min(mtimes) >= self.since
 

@@ -81,8 +81,10 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("-o", "--output", metavar="FILE",
                    help="where to write it (default: <shot folder>/farm/<name>.<slurm.sh|cue.xml|openjd.json>)")
 
-    s = sub.add_parser("status", help="per stage: frames valid, missing, stale, and where")
+    s = sub.add_parser("status", help="per stage: frames valid, missing, stale or corrupt, and where")
     common(s)
+    s.add_argument("--verify", action="store_true",
+                   help="also read every file and compare its digest with its stamp (slow)")
     return p
 
 
@@ -156,13 +158,15 @@ def cmd_status(args) -> int:
     paths = shot.paths
     print(f"{spec.shot.name} v{spec.shot.version:03d}: {paths.root}")
     for stage in STAGES:
-        sc = shot.scan(stage, spec.frames)
+        sc = shot.scan(stage, spec.frames, verify=args.verify)
         line = (f"  {stage:8s} valid {len(sc.valid):4d}  missing {len(sc.missing):4d}  "
-                f"stale {len(sc.stale):4d}  {paths.stage_dir(stage)}")
+                f"stale {len(sc.stale):4d}  corrupt {len(sc.corrupt):4d}  {paths.stage_dir(stage)}")
         if sc.missing and sc.valid:
             line += f"  (missing: {format_frames(sc.missing)})"
         if sc.stale:
             line += f"  (stale: {format_frames(sc.stale)})"
+        if sc.corrupt:
+            line += f"  (corrupt: {format_frames(sc.corrupt)})"
         print(line)
     ckpts = paths.checkpoints()
     if ckpts:

@@ -15,8 +15,10 @@ from __future__ import annotations
 import logging
 import os
 import uuid
+from pathlib import Path
 from dataclasses import dataclass
 
+from .cache import stage_hashes, stamp, stamp_path
 from .claims import FrameClaims, read_owner, release, try_claim
 from .errors import Busy, Interrupted, SphshotError, StageError
 from .frames import format_frames
@@ -34,6 +36,23 @@ class StagePlan:
 
 
 # ------------------------------------------------------------------------- one task, here
+class _Stamping:
+    """Stamps each finished frame's files (cache.stamp) before reporting the frame, and removes
+    what the frame held from other settings of its stage (ShotPaths.frame_leftovers)."""
+
+    def __init__(self, progress, stage: str, stage_hash: str, paths):
+        self.progress, self.stage, self.stage_hash, self.paths = progress, stage, stage_hash, paths
+
+    def frame_done(self, frame: int, files=()) -> None:
+        for f in files:
+            stamp(Path(f), self.stage_hash)
+        if files:
+            for old in self.paths.frame_leftovers(self.stage, frame):
+                for p in (old, stamp_path(old)):
+                    p.unlink(missing_ok=True)
+        self.progress.frame_done(frame, files)
+
+
 def run_here(stage: str, spec, frames, paths, progress, since: float | None = None) -> None:
     """Run `stage` over `frames` in this process. `progress` has ``frame_done(frame, files)``.
 
@@ -41,6 +60,7 @@ def run_here(stage: str, spec, frames, paths, progress, since: float | None = No
     whose worker died); the sequential sim holds one claim on the whole stage.
     """
     impl = STAGES[stage]
+    progress = _Stamping(progress, stage, stage_hashes(spec)[stage], paths)
     if not impl.per_frame:
         claim = paths.claim(stage, None)
         if not try_claim(claim):
@@ -54,7 +74,7 @@ def run_here(stage: str, spec, frames, paths, progress, since: float | None = No
         return
     todo = list(frames)
     while todo:
-        with FrameClaims(paths, stage, todo, since) as claims:
+        with FrameClaims(paths, stage, todo, since, progress.stage_hash) as claims:
             impl.run(spec, claims, paths, progress)
             todo = claims.wait_for_others()
         for frame in claims.by_others:

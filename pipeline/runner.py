@@ -24,7 +24,7 @@ def plan_stage(sc: cache.StageScan, paths: ShotPaths, frames: list[int], force: 
             f"shot.version to keep both")
     if force:
         return list(frames)
-    return list(sc.missing)
+    return sorted(sc.missing + sc.corrupt)          # corrupt frames are computed again
 
 
 def check_upstream(shot: ShotCache, stage: str, frames: list[int]) -> None:
@@ -32,6 +32,10 @@ def check_upstream(shot: ShotCache, stage: str, frames: list[int]) -> None:
     if up is None or not frames:
         return
     sc = shot.scan(up, frames)
+    if sc.corrupt:
+        raise StageError(
+            f"{stage}: {up} frame(s) {format_frames(sc.corrupt)} are corrupt (not the files that were "
+            f"written: truncated or changed since); run --stage {up} to compute them again")
     if sc.stale:
         raise StaleCacheError(
             f"{stage}: {up} frame(s) {format_frames(sc.stale)} were made with other parameters; "
@@ -58,8 +62,8 @@ def plan_run(shot: ShotCache, stages: list[str], frames: list[int], force: bool)
         todo = plan_stage(sc, paths, frames, force)
         if i == 0:
             check_upstream(shot, stage, todo)
-        if force and (sc.hash_changed or sc.stale):
-            cache.clear_stage(paths, stage)
+        if force and stage == "sim" and (sc.hash_changed or sc.stale):
+            cache.clear_checkpoints(paths)
         shot.record(stage)
         plans.append(StagePlan(stage, tuple(todo)))
     return plans
@@ -94,9 +98,16 @@ def _run(spec: ShotSpec, shot: ShotCache, stages: list[str], frames: list[int], 
     for plan in plans:
         stage = STAGES[plan.name]
         after = shot.scan(plan.name, frames)
-        if after.missing or after.stale:
-            bad = after.missing + after.stale
+        if not after.complete:
+            bad = sorted(after.missing + after.stale + after.corrupt)
             raise StageError(f"{plan.name}: frame(s) {format_frames(bad)} not valid on disk after the run")
-        if stage.finalize is not None and not shot.scan(plan.name, spec.frames).missing:
+        if stage.finalize is None:
+            continue
+        whole = shot.scan(plan.name, spec.frames)
+        if whole.complete:
             for path in stage.finalize(spec, shot.paths, force=force or bool(plan.todo)):
                 progress.file_written(path)
+        elif not whole.missing:       # every frame there, some made otherwise: no mixed movie
+            bad = sorted(whole.stale + whole.corrupt)
+            progress.line(f"sphshot: {plan.name}: the shot's frame(s) {format_frames(bad)} were made with other "
+                          f"parameters (or are corrupt): no movie or contact sheet until they are computed again")

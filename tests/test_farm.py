@@ -143,7 +143,8 @@ def test_overlapping_render_workers_render_each_frame_once(simmed, tmp_path):
     spec = spec_of(job, args)
     paths = cache.ShotPaths.for_spec(spec)
     assert cache.scan(spec, paths, "render", spec.frames).valid == tuple(spec.frames)
-    assert list(paths.stage_dir("render").glob(".*")) == [], "claims or temporaries left behind"
+    assert [p for p in paths.stage_dir("render").glob(".*") if not p.name.endswith(".stamp")] == [], \
+        "claims or temporaries left behind"
 
 
 # ------------------------------------------------------------------------------------ dask
@@ -219,8 +220,11 @@ def test_dask_streams_and_reports_a_failed_frame_by_number(job_copy):
     sim_end = paths.sim_frame(10).stat().st_mtime
     assert paths.surface_vdb(1).stat().st_mtime < sim_end, "no surface frame was published before " \
         "the sim ended: the surface stage did not stream behind the sim"
-    # now break sim frame 3 and recompute surface and render
+    # now break sim frame 3 and recompute surface and render. Stamped again as if its writer had
+    # made it so (a truncated or edited file is caught before any work starts: see
+    # test_pipeline's corrupt-frame test), so that the surface task itself fails
     paths.sim_frame(3).write_bytes(b"not an HDF5 file")
+    cache.stamp(paths.sim_frame(3), cache.stage_hashes(spec)["sim"])
     proc = sphshot("run", job, *args, "--stage", "surface", "--force", "--executor", "dask", "--workers", "2")
     assert proc.returncode == 1
     assert "failed: surface frame 3: frame 0003: surfacing: cannot read" in proc.stderr

@@ -355,3 +355,71 @@ def test_background_writer_keeps_order_and_reports_errors():
     w.submit(fail, 0)                  # (7 is still being written: nothing raises yet)
     w.close(quiet=True)                # an error is already on its way: this one is dropped
     assert written[-1] == 7
+
+
+def _copy_shot(shot, dst: Path) -> Path:
+    import shutil
+    job, _ = shot
+    shutil.copytree(job.parent, dst)
+    return dst / job.name
+
+
+def _status_line(stdout: str, stage: str) -> str:
+    return next(ln for ln in stdout.splitlines() if ln.strip().startswith(stage + " "))
+
+
+def test_a_truncated_frame_is_corrupt_and_computed_again(shot, tmp_path):
+    """Issue 19, item 5: a truncated sim frame, mesh and render (a copy cut short, a writer that
+    failed without an error) counted as valid. Each frame's files are stamped with their size
+    and digest when published: status says corrupt, and run computes exactly those frames again
+    (downstream of a corrupt sim frame, once it is good again); `status --verify` also finds a
+    file changed at its own size."""
+    job = _copy_shot(shot, tmp_path / "copy")
+    spec = spec_of(job, small())
+    paths = cache.ShotPaths.for_spec(spec)
+    for path in (paths.surface_meshes(4)[None], paths.render_frame(5)):
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    status = sphshot("status", job, *small(), check=True).stdout
+    assert "corrupt    1" in _status_line(status, "surface") and "(corrupt: 4)" in _status_line(status, "surface")
+    assert "(corrupt: 5)" in _status_line(status, "render"), status
+    before = mtimes(spec.output_root / "render")
+    proc = sphshot("run", job, *small(), check=True)
+    assert "sphshot: surface: 1 frame(s) in" in proc.stdout and "sphshot: render: 1 frame(s) in" in proc.stdout
+    after = mtimes(spec.output_root / "render")
+    changed = {name for name in after if after[name] != before.get(name)}
+    assert changed >= {f"{spec.shot.name}.0005.png"} and f"{spec.shot.name}.0004.png" not in changed
+    for stage in cache.STAGES:
+        assert cache.scan(spec, paths, stage, spec.frames).complete, stage
+    # same size, other bytes: only a full read finds it
+    frame = paths.render_frame(2)
+    data = bytearray(frame.read_bytes())
+    data[-20] ^= 0xFF
+    frame.write_bytes(bytes(data))
+    assert "corrupt    0" in _status_line(sphshot("status", job, *small(), check=True).stdout, "render")
+    assert "(corrupt: 2)" in _status_line(sphshot("status", job, *small(), "--verify", check=True).stdout, "render")
+
+
+def test_a_sequence_of_two_parameter_sets_is_never_valid(shot, tmp_path):
+    """Issue 19, items 1 and 3: frames 4-6 rendered at another resolution marked all six valid
+    and the movie was made of both sizes; --force on some frames deleted the others. Validity
+    is per frame: the first three show stale, no movie or contact sheet is made from the mix,
+    a plain run refuses (exit 3), and --force --frames 1 recomputes frame 1 alone, leaving 2
+    and 3 on disk, stale."""
+    job = _copy_shot(shot, tmp_path / "copy")
+    spec = spec_of(job, small())
+    paths = cache.ShotPaths.for_spec(spec)
+    other = small("render.resolution=[120, 72]")
+    paths.movie.unlink()
+    paths.contact_sheet.unlink()
+    proc = sphshot("run", job, *other, "--stage", "render", "--frames", "4-6", "--force", check=True)
+    assert "no movie or contact sheet until they are computed again" in proc.stdout
+    assert not paths.movie.exists() and not paths.contact_sheet.exists()
+    sc = cache.scan(spec_of(job, other), paths, "render", spec.frames)
+    assert sc.valid == (4, 5, 6) and sc.stale == (1, 2, 3)
+    refused = sphshot("run", job, *other, "--stage", "render")
+    assert refused.returncode == 3 and "frame(s) 1-3" in refused.stderr
+    kept = {f: paths.render_frame(f).stat().st_mtime_ns for f in (2, 3)}
+    sphshot("run", job, *other, "--stage", "render", "--frames", "1", "--force", check=True)
+    sc = cache.scan(spec_of(job, other), paths, "render", spec.frames)
+    assert sc.valid == (1, 4, 5, 6) and sc.stale == (2, 3)
+    assert {f: paths.render_frame(f).stat().st_mtime_ns for f in (2, 3)} == kept, "stale frames were touched"
