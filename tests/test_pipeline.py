@@ -322,9 +322,10 @@ def test_stage_timing_lines_count_from_each_stage_start():
 
 
 def test_background_writer_keeps_order_and_reports_errors():
-    """The sim stage's writer: callbacks in submission order on the calling thread, at most
-    MAX_PENDING writes outstanding, a write's error raised at the next drain, and everything
-    submitted before an error still written when it closes quietly."""
+    """The sim stage's writer: each write's callback right after it, on the writer thread and in
+    submission order; at most MAX_PENDING writes outstanding; a write's error raised on the
+    calling thread at the next drain; everything submitted before an error still written when
+    it closes quietly."""
     import threading
     import time as _time
 
@@ -339,10 +340,10 @@ def test_background_writer_keeps_order_and_reports_errors():
 
     w = BackgroundWriter()
     for n in range(6):
-        w.submit(slow, n, done=lambda r: seen.append((r, threading.get_ident() == main)))
+        w.submit(slow, n, done=lambda r: seen.append((r, written[-1] == r, threading.get_ident() != main)))
         assert len(w._pending) <= w.MAX_PENDING
     w.close()
-    assert seen == [(n, True) for n in range(6)] and written == list(range(6))
+    assert seen == [(n, True, True) for n in range(6)] and written == list(range(6))
 
     def fail(_):
         raise OSError("disk full")
@@ -358,10 +359,16 @@ def test_background_writer_keeps_order_and_reports_errors():
 
 
 def _copy_shot(shot, dst: Path) -> Path:
+    """A copy of the module's shot, every stage valid for small() (tests before may have
+    rendered it with other settings)."""
     import shutil
     job, _ = shot
     shutil.copytree(job.parent, dst)
-    return dst / job.name
+    job = dst / job.name
+    if not cache.scan(spec_of(job, small()), cache.ShotPaths.for_spec(spec_of(job, small())), "render",
+                      spec_of(job, small()).frames).complete:
+        sphshot("run", job, *small(), "--stage", "render", "--force", check=True)
+    return job
 
 
 def _status_line(stdout: str, stage: str) -> str:

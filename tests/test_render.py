@@ -230,3 +230,35 @@ def test_depth_pass_png16(tmp_path):
     assert (depth[~hit] == 65535).mean() > 0.95, "background must be 65535"
     # silhouette pixels are color-blended with the background but not depth-blended: allow 2%
     assert (depth[hit] < 65535).mean() > 0.98 and depth.min() == 0   # normalised: nearest hit is 0
+
+
+@pytest.mark.parametrize("failure", ["black", "small"])
+def test_a_failed_render_is_an_error_and_publishes_nothing(tmp_path, monkeypatch, failure):
+    """Issue 19, item 6: at 8192 x 4320 VTK's off-screen framebuffer could not be made, every
+    pixel came back black and the black PNGs were published as valid frames. A render of one
+    flat color, or of another size than render.resolution, is a StageError naming the frame,
+    and nothing is written for it."""
+    from pipeline.errors import StageError
+    from pipeline.stages import render
+
+    spec = scene(tmp_path)
+    paths = synthetic_meshes(spec, spec.frames)
+    w, h = spec.render.resolution
+    bad = np.zeros((h, w, 3), np.uint8) if failure == "black" else np.full((h // 2, w // 2, 3), 90, np.uint8)
+    monkeypatch.setattr(render.FrameRenderer, "render", lambda self, frame, paths: bad)
+    with pytest.raises(StageError, match="render: frame 0001 came out"):
+        render.run(spec, [1], paths, quiet())
+    assert not paths.render_frame(1).exists()
+
+
+def test_an_empty_view_on_a_flat_background_is_a_frame(tmp_path):
+    """A flat background (render.background_top unset) with nothing in view is one flat color
+    too, and a legitimate frame."""
+    from pipeline.stages import render
+
+    spec = scene(tmp_path, background_top=None,
+                 camera={"position": (0.3, 0.2, -3.0), "focal_point": (0.3, 0.2, -6.0), "fov": 30.0})
+    paths = synthetic_meshes(spec, [1])
+    render.run(spec, [1], paths, quiet())
+    img = np.asarray(Image.open(paths.render_frame(1)))
+    assert (img == img[0, 0]).all()

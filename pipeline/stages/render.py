@@ -193,6 +193,25 @@ def collider_meshes(spec):
     return out
 
 
+def check_image(spec, frame: int, image: np.ndarray) -> np.ndarray:
+    """The rendered frame, or a StageError when it cannot be what was asked for: another size,
+    or one flat color other than a flat background's (the default background is a gradient, so
+    a flat image is a render that failed: at 8192 x 4320 VTK's off-screen framebuffer could not
+    be made and every pixel came back black, with no error)."""
+    w, h = spec.render.resolution
+    where = f"render: frame {frame:04d}"
+    if image.shape[:2] != (h, w):
+        raise StageError(f"{where} came out {image.shape[1]}x{image.shape[0]}, not the {w}x{h} of "
+                         f"render.resolution: the off-screen framebuffer cannot be that large here")
+    flat = (image == image.reshape(-1, image.shape[2])[0]).all()
+    empty_view = spec.render.background_top is None and \
+        np.abs(image[0, 0, :3].astype(float) - 255 * np.asarray(spec.render.background)).max() <= 2
+    if flat and not empty_view:       # (a flat background and nothing in view is a flat image)
+        raise StageError(f"{where} came out one flat color at {w}x{h}: the off-screen render failed "
+                         f"(a framebuffer this large may not be possible here); lower render.resolution")
+    return image
+
+
 def save_png(final: Path, image: np.ndarray) -> Path:
     from PIL import Image
 
@@ -251,7 +270,7 @@ def run(spec, frames, paths, progress) -> None:
     renderer = renderer_for(spec)
     try:
         for frame in frames:
-            image = renderer.render(frame, paths)
+            image = check_image(spec, frame, renderer.render(frame, paths))
             written = [save_png(paths.render_frame(frame), image)]
             if spec.render.depth == "png16":
                 written.append(save_depth_png16(paths.render_depth(frame), renderer.depth()))

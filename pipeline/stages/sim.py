@@ -151,8 +151,9 @@ def build_solver(spec, paths, first_frame: int):
 class BackgroundWriter:
     """Writes files on one thread beside the solver, in submission order, so the GPU steps on
     while a frame goes to disk; at most MAX_PENDING writes wait (each holds a frame's arrays).
-    `done(result)` callbacks and write errors come back on the calling thread, in order, at the
-    next submit, drain or close."""
+    A write's `done(result)` runs on the writer thread right after it (the frame is stamped and
+    reported as soon as it is published: a kill then loses no finished frame); write errors
+    come back on the calling thread, in order, at the next submit, drain or close."""
     MAX_PENDING = 2
 
     def __init__(self):
@@ -161,7 +162,11 @@ class BackgroundWriter:
         self._pending: list = []
 
     def submit(self, fn, *args, done=None) -> None:
-        self._pending.append((self._pool.submit(fn, *args), done))
+        def task():
+            result = fn(*args)
+            if done is not None:
+                done(result)
+        self._pending.append(self._pool.submit(task))
         self._collect(wait_for=len(self._pending) - self.MAX_PENDING)
 
     def drain(self) -> None:
@@ -169,12 +174,10 @@ class BackgroundWriter:
         self._collect(wait_for=len(self._pending))
 
     def _collect(self, wait_for: int) -> None:
-        while self._pending and (wait_for > 0 or self._pending[0][0].done()):
-            future, done = self._pending.pop(0)
+        while self._pending and (wait_for > 0 or self._pending[0].done()):
+            future = self._pending.pop(0)
             wait_for -= 1
-            result = future.result()
-            if done is not None:
-                done(result)
+            future.result()
 
     def close(self, quiet: bool = False) -> None:
         """Wait for every write; `quiet`: while another error is on its way, drop write errors."""
@@ -243,7 +246,7 @@ def run(spec, frames, paths, progress) -> None:
             report = solver.frame_report()
             log_frame(frame, report)
             if frame in todo or not paths.sim_frame(frame).exists():
-                # written beside the next frame's steps; reported once on disk
+                # written beside the next frame's steps; stamped and reported once on disk
                 writer.submit(write_frame, paths.sim_frame(frame), data,
                               frame_attrs(spec, params, frame, solver, report),
                               done=lambda path, f=frame: progress.frame_done(f, [path]))
