@@ -309,6 +309,21 @@ def scan(spec: ShotSpec, paths: ShotPaths, stage: str, frames) -> StageScan:
     return ShotCache(spec, paths).scan(stage, frames)
 
 
+def output_problem(root: Path) -> str | None:
+    """Why a shot version's folder cannot be made or written to (one line), or None: a file
+    where a folder must be, or no permission to write in the nearest folder that exists."""
+    p = Path(root)
+    while not p.exists():
+        if p == p.parent:
+            return f"{root}: no folder of it exists"
+        p = p.parent
+    if not p.is_dir():
+        return f"{p} is a file, not a folder: the shot is written to {root}"
+    if not os.access(p, os.W_OK | os.X_OK):
+        return f"cannot write in {p} (permission denied): the shot is written to {root}"
+    return None
+
+
 def remove_if_empty(paths: ShotPaths) -> bool:
     """Remove a shot version that holds nothing but its manifest and empty folders (what a
     first run that failed before publishing a frame leaves). Any other file (a frame, a live

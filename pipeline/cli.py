@@ -118,8 +118,12 @@ def _gigabytes(text: str) -> float:
 
 def _preflight(spec, args):
     """The shot's memory and disk estimate; TooBig (exit 2) when it does not fit."""
+    from .cache import output_problem
     from .errors import TooBig
     from .estimate import estimate, too_big
+    bad = output_problem(spec.output_root)
+    if bad:
+        raise UsageError(f"{args.job}: shot.output: {bad}")
     est = estimate(spec)
     problem = too_big(spec, est, args.max_memory)
     if problem:

@@ -92,6 +92,8 @@ CORPUS = [
     ("max-memory-below-the-shot", GOOD, ["--set", "sim.particle_radius=0.004", "--max-memory", "0.35"],
      "over the 0.35 GB --max-memory; change sim.particle_radius = 0.004 m"),
     ("max-memory-not-a-number", GOOD, ["--max-memory", "lots"], "--max-memory: expected a number of gigabytes"),
+    ("output-names-a-file", GOOD.replace('output = "out"', 'output = "job.toml"'), [],
+     "job.toml is a file, not a folder: the shot is written to"),
 ]
 
 
