@@ -214,10 +214,14 @@ def test_sigkill_resumes_from_checkpoint(tmp_path):
     """Kill the sim with SIGKILL part-way; rerun resumes from the last checkpoint, never frame 1."""
     job, args, spec, paths, proc = start_sim(tmp_path, "shot.frame_end=24", "shot.checkpoint_every=3",
                                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    sim_hash = cache.stage_hashes(spec)["sim"]
+
+    def stamped():        # checkpoints a resume takes: published and stamped
+        return [c for c in paths.checkpoints() if cache.check_file(paths.checkpoint(c), sim_hash) == "valid"]
     deadline = time.time() + 300
     try:
         while time.time() < deadline:
-            if any(c >= 7 for c in paths.checkpoints()):
+            if any(c >= 7 for c in stamped()):
                 break
             assert proc.poll() is None, "the sim finished before it could be killed; make it longer"
             time.sleep(0.05)
@@ -228,14 +232,14 @@ def test_sigkill_resumes_from_checkpoint(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
-    killed_at = max(paths.checkpoints())
+    killed_at = max(stamped())
     assert killed_at < 24
     assert _all_final_files_complete(spec.output_root) > 0
     early = {f: paths.sim_frame(f).stat().st_mtime_ns for f in range(1, killed_at + 1)
              if paths.sim_frame(f).exists()}
-    rerun = sphshot("run", job, "--stage", "sim", *args, check=True)
     first_missing = min(f for f in spec.frames if f not in early)
-    resumed = max(c for c in paths.checkpoints() if c < first_missing) if early else 1
+    resumed = max(c for c in stamped() if c < first_missing) if early else 1
+    rerun = sphshot("run", job, "--stage", "sim", *args, check=True)
     assert f"sim: resuming from checkpoint at frame {resumed}" in rerun.stderr
     assert resumed > 1, "resumed from the beginning"
     assert cache.scan(spec, paths, "sim", spec.frames).valid == tuple(spec.frames)
@@ -430,3 +434,27 @@ def test_a_sequence_of_two_parameter_sets_is_never_valid(shot, tmp_path):
     sc = cache.scan(spec_of(job, other), paths, "render", spec.frames)
     assert sc.valid == (1, 4, 5, 6) and sc.stale == (2, 3)
     assert {f: paths.render_frame(f).stat().st_mtime_ns for f in (2, 3)} == kept, "stale frames were touched"
+
+
+def test_resume_takes_only_checkpoints_made_for_these_parameters(job_copy):
+    """Checkpoints are stamped like frames: a resume skips one that is corrupt (here cut short)
+    and goes back to the one before, and skips ones made with other sim parameters."""
+    job = job_copy()
+    args = small()
+    spec = spec_of(job, args)
+    paths = cache.ShotPaths.for_spec(spec)
+    sphshot("run", job, *args, "--stage", "sim", check=True)
+    assert paths.checkpoints() == [1, 3, 5, 6]
+    for f in (5, 6):
+        paths.sim_frame(f).unlink()
+    ckpt = paths.checkpoint(3)
+    ckpt.write_bytes(ckpt.read_bytes()[:1000])
+    rerun = sphshot("run", job, *args, "--stage", "sim", check=True)
+    assert "sim: resuming from checkpoint at frame 1" in rerun.stderr, rerun.stderr
+    assert cache.scan(spec, paths, "sim", spec.frames).complete
+    # the same checkpoints, stamped as if made with other parameters: the run starts afresh
+    for c in paths.checkpoints():
+        cache.stamp(paths.checkpoint(c), "another-hash")
+    paths.sim_frame(6).unlink()
+    rerun = sphshot("run", job, *args, "--stage", "sim", check=True)
+    assert "resuming from checkpoint" not in rerun.stderr and "sim: dfsph," in rerun.stderr

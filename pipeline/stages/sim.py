@@ -19,6 +19,7 @@ from solver.errors import NoParticles, TooLarge, Unstable
 from solver.meshsdf import sample_sdf
 from solver.params import Block, Collider, Fluid, SolverParams
 
+from ..cache import check_file, stage_hashes, stamp
 from ..errors import Interrupted, StageError
 from ..formats import read_h5, write_frame, write_h5
 
@@ -134,7 +135,8 @@ def check_stable(spec, params: SolverParams, frame: int, data: dict) -> None:
 def build_solver(spec, paths, first_frame: int):
     """A solver at the latest checkpoint before first_frame, or at the initial fill."""
     params = solver_params(spec)
-    ckpts = [c for c in paths.checkpoints() if c < first_frame]
+    current = stage_hashes(spec)["sim"]
+    ckpts = [c for c in paths.checkpoints() if c < first_frame and check_file(paths.checkpoint(c), current) == "valid"]
     if ckpts:
         frame = ckpts[-1]
         data, attrs = read_h5(paths.checkpoint(frame))
@@ -190,13 +192,18 @@ class BackgroundWriter:
             self._pool.shutdown(wait=True)
 
 
-def write_checkpoint(paths, frame: int, solver, writer: BackgroundWriter | None = None) -> None:
-    """The solver's state (read from the device now), written now or by `writer`."""
-    args = (paths.checkpoint(frame), solver.state(), {"frame": frame, **solver.controller()})
+def write_checkpoint(paths, frame: int, solver, stage_hash: str, writer: BackgroundWriter | None = None) -> None:
+    """The solver's state (read from the device now), written now or by `writer`, and stamped
+    with the sim's parameter hash: a resume takes only checkpoints made with the current
+    parameters (build_solver)."""
+    path, state, attrs = paths.checkpoint(frame), solver.state(), {"frame": frame, **solver.controller()}
+
+    def write() -> None:
+        stamp(write_h5(path, state, attrs), stage_hash)
     if writer is None:
-        write_h5(*args)
+        write()
     else:
-        writer.submit(write_h5, *args)
+        writer.submit(write)
 
 
 def run(spec, frames, paths, progress) -> None:
@@ -207,6 +214,7 @@ def run(spec, frames, paths, progress) -> None:
 
     todo = sorted(frames)
     last = todo[-1]
+    stage_hash = stage_hashes(spec)["sim"]
     try:
         params, solver, ckpt_frame = build_solver(spec, paths, todo[0])
     except TooLarge as exc:
@@ -219,7 +227,7 @@ def run(spec, frames, paths, progress) -> None:
         if start in todo or not paths.sim_frame(start).exists():
             progress.frame_done(start, [write_frame(paths.sim_frame(start), data,
                                                     frame_attrs(spec, params, start, solver, {}))])
-        write_checkpoint(paths, start, solver)
+        write_checkpoint(paths, start, solver, stage_hash)
 
     previous = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGUSR1)}
     for s in previous:
@@ -238,7 +246,7 @@ def run(spec, frames, paths, progress) -> None:
             if not done:
                 # checkpoint named after the last finished frame, holding the exact mid-frame state
                 writer.drain()
-                write_checkpoint(paths, frame - 1, solver)
+                write_checkpoint(paths, frame - 1, solver, stage_hash)
                 raise Interrupted(f"sim: stopped by {_STOP['signal']} during frame {frame:04d}; "
                                   f"checkpoint written, run again to resume")
             data = solver.snapshot()
@@ -251,7 +259,7 @@ def run(spec, frames, paths, progress) -> None:
                               frame_attrs(spec, params, frame, solver, report),
                               done=lambda path, f=frame: progress.frame_done(f, [path]))
             if (frame - spec.shot.frame_start) % spec.shot.checkpoint_every == 0 or frame == last:
-                write_checkpoint(paths, frame, solver, writer)
+                write_checkpoint(paths, frame, solver, stage_hash, writer)
     except BaseException:
         writer.close(quiet=True)       # the frames before the error still reach the disk
         raise
