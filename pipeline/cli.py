@@ -22,7 +22,7 @@ exit codes:
   {errors.EXIT_INTERRUPTED}  interrupted (SIGTERM/SIGUSR1/SIGINT) after a checkpoint; run again to resume
 """
 
-STAGE_CHOICES = (*STAGES, "all")
+STAGE_CHOICES = (*STAGES, *(f"{s}+" for s in list(STAGES)[1:-1]), "all")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -55,7 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run stages over frames, skipping frames already valid",
                        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     common(r)
-    r.add_argument("--stage", choices=STAGE_CHOICES, default="all")
+    r.add_argument("--stage", choices=STAGE_CHOICES, default="all",
+                   help="one stage, all, or S+ for stage S and every stage after it (with --force: "
+                        "recompute surface and render after a surface change in one command)")
     r.add_argument("--frames", help="A, A-B or A-BxSTEP (default: the whole shot)")
     r.add_argument("--chunk", type=_positive, metavar="N",
                    help="run N frames from the start frame given by --frames, CUE_IFRAME or "
@@ -132,7 +134,13 @@ def _preflight(spec, args):
 
 
 def _stages(choice: str) -> list[str]:
-    return list(STAGES) if choice == "all" else [choice]
+    """`all`, one stage, or `S+`: stage S and every stage after it."""
+    names = list(STAGES)
+    if choice == "all":
+        return names
+    if choice.endswith("+"):
+        return names[names.index(choice[:-1]):]
+    return [choice]
 
 
 def _load(args):
@@ -175,6 +183,10 @@ def cmd_status(args) -> int:
     ckpts = paths.checkpoints()
     if ckpts:
         print(f"  checkpoints: {format_frames(ckpts)}")
+    for wanted, name, path in ((spec.render.movie, "movie", paths.movie),
+                               (spec.render.contact_sheet, "contact sheet", paths.contact_sheet)):
+        if wanted:
+            print(f"  {name}: {path if path.exists() else 'not made (made once every render frame is valid)'}")
     return 0
 
 

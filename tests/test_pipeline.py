@@ -458,3 +458,23 @@ def test_resume_takes_only_checkpoints_made_for_these_parameters(job_copy):
     paths.sim_frame(6).unlink()
     rerun = sphshot("run", job, *args, "--stage", "sim", check=True)
     assert "resuming from checkpoint" not in rerun.stderr and "sim: dfsph," in rerun.stderr
+
+
+def test_a_stage_and_its_downstream_in_one_command(shot, tmp_path):
+    """Issue 19, item 8: a surface change took two forced runs (surface, then render).
+    `--stage surface+ --force` recomputes surface and render and leaves the sim alone; status
+    names the movie and contact sheet."""
+    job = _copy_shot(shot, tmp_path / "copy")
+    spec = spec_of(job, small())
+    root = spec.output_root
+    sim_before, render_before = mtimes(root / "sim"), mtimes(root / "render")
+    changed = small("surface.iso=0.55")
+    proc = sphshot("run", job, *changed, "--stage", "surface+", "--force", check=True)
+    assert "sphshot: surface: 6 frame(s) in" in proc.stdout and "sphshot: render: 6 frame(s) in" in proc.stdout
+    assert mtimes(root / "sim") == sim_before
+    after = mtimes(root / "render")
+    assert all(after[f"{spec.shot.name}.{f:04d}.png"] != render_before[f"{spec.shot.name}.{f:04d}.png"]
+               for f in spec.frames)
+    status = sphshot("status", job, *changed, check=True).stdout
+    paths = cache.ShotPaths.for_spec(spec)
+    assert f"movie: {paths.movie}" in status and f"contact sheet: {paths.contact_sheet}" in status
