@@ -344,6 +344,21 @@ def remove_if_empty(paths: ShotPaths) -> bool:
     return not root.exists()
 
 
+def remove_frames(paths: ShotPaths, stage: str, frames) -> int:
+    """Remove the frames' files of a stage (under every layout) and their stamps; returns how
+    many files went (sphshot clean)."""
+    removed = 0
+    for f in frames:
+        for p in [*paths.frame_files(stage, f), *paths.frame_leftovers(stage, f)]:
+            for q in (p, stamp_path(p)):
+                try:
+                    q.unlink()
+                    removed += 1
+                except FileNotFoundError:
+                    pass
+    return removed
+
+
 def clear_checkpoints(paths: ShotPaths) -> None:
     """Remove the sim's checkpoints (--force after the sim's parameters changed: a resume from
     them would continue the old run). Frames are never removed: stale ones stay, shown as

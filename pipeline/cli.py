@@ -83,6 +83,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("-o", "--output", metavar="FILE",
                    help="where to write it (default: <shot folder>/farm/<name>.<slurm.sh|cue.xml|openjd.json>)")
 
+    k = sub.add_parser("clean", help="remove a stage's frames: all of them, or with --stale those made with "
+                                      "other parameters or corrupt; says what it removes")
+    common(k)
+    k.add_argument("--stage", choices=STAGE_CHOICES, default="all")
+    k.add_argument("--stale", action="store_true", help="only frames that are stale or corrupt")
+    k.add_argument("--dry-run", action="store_true", help="say what would go, remove nothing")
+
     s = sub.add_parser("status", help="per stage: frames valid, missing, stale or corrupt, and where")
     common(s)
     s.add_argument("--verify", action="store_true",
@@ -213,6 +220,31 @@ def cmd_run(args) -> int:
     return 0
 
 
+def cmd_clean(args) -> int:
+    from . import cache
+    from .frames import format_frames
+    spec = _load(args)
+    shot = cache.ShotCache(spec)
+    verb = "would remove" if args.dry_run else "removed"
+    for stage in _stages(args.stage):
+        sc = shot.scan(stage, spec.frames)
+        frames = sorted(sc.stale + sc.corrupt) if args.stale else sorted(sc.valid + sc.stale + sc.corrupt)
+        if not frames:
+            print(f"sphshot: clean: {stage}: nothing to remove")
+            continue
+        n = sum(len([p for p in shot.paths.frame_files(stage, f) if p.exists()]) for f in frames) \
+            if args.dry_run else cache.remove_frames(shot.paths, stage, frames)
+        what = "stale or corrupt " if args.stale else ""
+        print(f"sphshot: clean: {stage}: {verb} {len(frames)} {what}frame(s) {format_frames(frames)} "
+              f"({n} file(s)) in {shot.paths.stage_dir(stage)}")
+        if stage == "render" and not args.dry_run:
+            for p in (shot.paths.movie, shot.paths.contact_sheet):      # made of these frames
+                p.unlink(missing_ok=True)
+        if stage == "sim" and not args.stale and not args.dry_run:
+            cache.clear_checkpoints(shot.paths)
+    return 0
+
+
 def cmd_export(args) -> int:
     from .export import export_job
     spec = _load(args)
@@ -233,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.print_help()
             return errors.EXIT_USAGE
         handler = {"validate": cmd_validate, "run": cmd_run, "status": cmd_status,
-                   "export": cmd_export}[args.command]
+                   "export": cmd_export, "clean": cmd_clean}[args.command]
         return handler(args)
     except SphshotError as err:
         for line in str(err).splitlines() or [err.__class__.__name__]:
@@ -242,6 +274,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("sphshot: interrupted", file=sys.stderr)
         return errors.EXIT_INTERRUPTED
+    except OSError as err:     # a full disk, a folder gone or not writable mid-run: one line
+        where = f": {err.filename}" if getattr(err, "filename", None) else ""
+        print(f"sphshot: error: {err.strerror or err}{where} (nothing half-written was published)",
+              file=sys.stderr)
+        return errors.EXIT_FAILURE
 
 
 if __name__ == "__main__":

@@ -97,4 +97,12 @@ def write_vdb(final: Path, grids) -> Path:
 
     with atomic_path(final) as tmp:
         vdb.write(str(tmp), grids=grids)
+        # pyopenvdb does not raise when the disk fills: read the grid list back before the file
+        # is published (a truncated file fails here and is never renamed into place)
+        try:
+            names = [g["name"] for g in vdb.readAllGridMetadata(str(tmp))]
+        except Exception as exc:          # OpenVDB's IoError and friends carry no common base
+            raise OSError(f"{final}: the OpenVDB file written could not be read back ({exc})") from None
+        if sorted(names) != sorted(g.name for g in grids):
+            raise OSError(f"{final}: the OpenVDB file written holds {names}, not {[g.name for g in grids]}")
     return final

@@ -478,3 +478,66 @@ def test_a_stage_and_its_downstream_in_one_command(shot, tmp_path):
     status = sphshot("status", job, *changed, check=True).stdout
     paths = cache.ShotPaths.for_spec(spec)
     assert f"movie: {paths.movie}" in status and f"contact sheet: {paths.contact_sheet}" in status
+
+
+def test_a_full_disk_is_one_line_and_publishes_nothing(job_copy, monkeypatch, capsys):
+    """Issue 19, items 5 and 7: on a full disk pyopenvdb wrote a truncated .vdb without an
+    error and it was published; other writers' OSErrors were tracebacks. The .vdb is read back
+    before it is published, and an OSError anywhere in a run is one line, exit 1."""
+    import errno
+
+    import pyopenvdb
+
+    from pipeline import formats
+    from pipeline.cli import main
+
+    # a writer that "succeeds" but leaves a cut-short file
+    real_write = pyopenvdb.write
+
+    def short_write(path, grids):
+        real_write(path, grids=grids)
+        with open(path, "r+b") as fh:
+            fh.truncate(100)
+    monkeypatch.setattr(pyopenvdb, "write", short_write)
+    grid = pyopenvdb.FloatGrid()
+    grid.name = "density"
+    final = job_copy().parent / "x.vdb"
+    with pytest.raises(OSError, match="could not be read back"):
+        formats.write_vdb(final, [grid])
+    assert not final.exists() and not list(final.parent.glob(".x.vdb*"))
+
+    # ENOSPC from the sim's frame writer, through the CLI in this process
+    job = job_copy()
+
+    def full(*_a, **_k):
+        raise OSError(errno.ENOSPC, "No space left on device", str(job.parent / "out"))
+    monkeypatch.setattr(formats, "write_h5", full)
+    monkeypatch.setattr("pipeline.stages.sim.write_h5", full)
+    monkeypatch.setattr("pipeline.stages.sim.write_frame", full)
+    code = main(["run", str(job), *small(), "--stage", "sim"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("sphshot: error")]
+    assert code == 1 and "Traceback" not in err
+    assert lines == [f"sphshot: error: No space left on device: {job.parent / 'out'} (nothing half-written was "
+                     f"published)"], err
+
+
+def test_clean_removes_stale_frames_and_says_so(shot, tmp_path):
+    """Issue 19: stale frames stay until recomputed or removed by `sphshot clean`, which says
+    what it removes (--dry-run: what it would) and touches nothing else."""
+    job = _copy_shot(shot, tmp_path / "copy")
+    other = small("render.resolution=[120, 72]")
+    sphshot("run", job, *other, "--stage", "render", "--frames", "4-6", "--force", check=True)
+    spec = spec_of(job, other)
+    paths = cache.ShotPaths.for_spec(spec)
+    dry = sphshot("clean", job, *other, "--stage", "render", "--stale", "--dry-run", check=True).stdout
+    assert "render: would remove 3 stale or corrupt frame(s) 1-3 (3 file(s))" in dry
+    assert all(paths.render_frame(f).exists() for f in spec.frames)
+    out = sphshot("clean", job, *other, "--stage", "render", "--stale", check=True).stdout
+    assert "render: removed 3 stale or corrupt frame(s) 1-3 (6 file(s))" in out      # frames and stamps
+    sc = cache.scan(spec, paths, "render", spec.frames)
+    assert sc.missing == (1, 2, 3) and sc.valid == (4, 5, 6)
+    assert not any(cache.stamp_path(paths.render_frame(f)).exists() for f in (1, 2, 3))
+    assert cache.scan(spec, paths, "surface", spec.frames).complete, "another stage was touched"
+    assert "surface: nothing to remove" in sphshot("clean", job, *other, "--stage", "surface", "--stale",
+                                                   check=True).stdout
