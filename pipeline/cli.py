@@ -246,8 +246,19 @@ def cmd_clean(args) -> int:
 
 
 def cmd_export(args) -> int:
+    from . import cache
+    from .errors import StaleCacheError
     from .export import export_job
+    from .frames import format_frames
     spec = _load(args)
+    shot = cache.ShotCache(spec)
+    for stage in STAGES:        # every farm task would refuse these (exit 3): say so now, once
+        stale = shot.scan(stage, spec.frames).stale
+        if stale:
+            raise StaleCacheError(f"{args.job}: {stage} frame(s) {format_frames(stale)} in {shot.paths.stage_dir(stage)} "
+                                  f"were made with other parameters, so every farm task of this export would "
+                                  f"refuse them; run --stage {stage} --force (or sphshot clean --stale) first, "
+                                  f"or raise shot.version")
     path = export_job(spec, Path(args.job).resolve(), args.overrides, args.to, args.chunk,
                       Path(args.output) if args.output else None)
     print(f"sphshot: wrote {args.to} job {path}")

@@ -7,9 +7,10 @@ so it skips frames already valid, claims the ones it computes, and exits 0 only 
 frame of its chunk is valid on disk.
 
 - ``slurm``: a bash script that submits three ``sbatch`` jobs: the sim (SIGUSR1 two minutes
-  before its time limit makes it checkpoint and exit 5), a surface array job
-  (``--array=START-END:CHUNK``, the task id is the chunk's first frame) after the sim, and a
-  render array job whose task i waits on surface task i (``aftercorr``).
+  before its time limit makes it checkpoint and exit 5, and the job requeues itself), a surface
+  array job (``--array=0-N``, task i = the chunk from frame START + i * CHUNK) after the sim,
+  and a render array job whose task i waits on surface task i (``aftercorr``). Site options
+  come from SPHSHOT_SBATCH / SPHSHOT_SBATCH_SIM as shell words.
 - ``opencue``: a job spec XML (cjsl 1.14) with three layers; render depends on surface frame
   by frame (``FRAME_BY_FRAME``), surface on the whole sim layer (``LAYER_ON_LAYER``).
 - ``openjd``: an Open Job Description template (jobtemplate-2023-09) with three steps and a
@@ -66,23 +67,38 @@ def _job_name(spec: ShotSpec) -> str:
 def slurm_script(spec: ShotSpec, job: Path, overrides: list[str], chunk: int) -> str:
     cmd = sphshot_command()
     a, b = spec.shot.frame_start, spec.shot.frame_end
+    tasks = (b - a) // chunk + 1
     name = _job_name(spec)
     logs = spec.output_root / "farm" / "logs"
 
-    def wrap(stage: str, extra: list[str] = ()) -> str:
-        return shlex.quote("exec " + shlex.join(cmd + run_args(job, overrides, stage) + list(extra)))
+    def chunk_wrap(stage: str) -> str:
+        """A chunk task: array index i runs the chunk starting at frame A + i * CHUNK (indices
+        from 0, so a shot at frames 1001-1100 stays under SLURM's MaxArraySize)."""
+        line = (shlex.join(cmd + run_args(job, overrides, stage))
+                + f' --frames "$(({a} + SLURM_ARRAY_TASK_ID * {chunk}))" --chunk {chunk}')
+        return shlex.quote("exec " + line)
+
+    def sim_wrap() -> str:
+        """The sim: SIGUSR1 (sent to this shell by --signal=B:USR1) is passed on to sphshot,
+        which checkpoints and exits 5; the job then requeues itself, so it resumes from the
+        checkpoint and the jobs that wait on it (afterok) still start once it is done."""
+        line = (f"{shlex.join(cmd + run_args(job, overrides, 'sim'))} & pid=$!; "
+                "trap 'kill -USR1 $pid' USR1; wait $pid; rc=$?; "
+                "if [ $rc -gt 128 ]; then wait $pid; rc=$?; fi; "
+                'if [ $rc -eq 5 ]; then scontrol requeue "$SLURM_JOB_ID"; fi; exit $rc')
+        return shlex.quote(line)
 
     def submit(stage: Stage) -> str:
-        """One sbatch line: the sequential sim as one task (USR1 before its time limit makes it
-        checkpoint), a per-frame stage as an array of chunks after its upstream."""
+        """One sbatch line: the sequential sim as one requeueable task, a per-frame stage as an
+        array of chunks after its upstream."""
         s = stage.name
         if stage.per_frame:
             after = "aftercorr" if STAGES[stage.upstream].per_frame else "afterok"
-            opts = (f'--output="$LOGS/%x.%A_%a.log" \\\n    --array={a}-{b}:{chunk} '
-                    f'--dependency={after}:${stage.upstream} --wrap={wrap(s, ["--chunk", str(chunk)])}')
+            opts = (f'--output="$LOGS/%x.%A_%a.log" \\\n    --array=0-{tasks - 1} '
+                    f'--dependency={after}:${stage.upstream} --wrap={chunk_wrap(s)}')
         else:
-            opts = (f'--output="$LOGS/%x.%j.log" \\\n    --signal=B:USR1@120 '
-                    f'${{SPHSHOT_SBATCH_SIM:-}} --wrap={wrap(s)}')
+            opts = (f'--output="$LOGS/%x.%j.log" \\\n    --signal=B:USR1@120 --requeue '
+                    f'"${{sim_extra[@]}}" --wrap={sim_wrap()}')
         return f'{s}=$("$SBATCH" "${{common[@]}}" --job-name={name}.{s} {opts})\n{s}=${{{s}%%;*}}\n'
 
     submissions = "\n".join(submit(stage) for stage in STAGES.values())
@@ -92,16 +108,19 @@ def slurm_script(spec: ShotSpec, job: Path, overrides: list[str], chunk: int) ->
 # (written by `sphshot export --to slurm --chunk {chunk}`). Run it with bash where sbatch works.
 # It submits three jobs:
 #   sim      one task; SIGUSR1 two minutes before the time limit makes it write a checkpoint
-#            and exit 5; submit this script again to resume (valid frames are skipped)
-#   surface  an array job, one task per {chunk} frames (task id = first frame), after the sim
+#            and exit 5, and the job requeues itself to resume from it (valid frames are skipped)
+#   surface  an array job, task i = the {chunk} frames from {a} + i * {chunk}, after the sim
 #   render   an array job; task i starts when surface task i succeeded (aftercorr)
-# Site options (partition, account, time, GPUs) go in SPHSHOT_SBATCH_SIM and SPHSHOT_SBATCH,
-# e.g. SPHSHOT_SBATCH_SIM="--gres=gpu:1 --time=4:00:00".
+# Site options (partition, account, time, GPUs, CPUs, memory) go in SPHSHOT_SBATCH_SIM (the sim)
+# and SPHSHOT_SBATCH (every job), as shell words: quotes are honoured, e.g.
+#   SPHSHOT_SBATCH_SIM='--gres=gpu:1 --time=4:00:00' SPHSHOT_SBATCH='--comment="shot {spec.shot.name}"'
 set -euo pipefail
 SBATCH="${{SBATCH:-sbatch}}"
 LOGS={shlex.quote(str(logs))}
 mkdir -p "$LOGS"
-common=(--parsable ${{SPHSHOT_SBATCH:-}})
+eval "site=(${{SPHSHOT_SBATCH:-}})"
+eval "sim_extra=(${{SPHSHOT_SBATCH_SIM:-}})"
+common=(--parsable "${{site[@]}}")
 
 {submissions}
 echo "sphshot: submitted {name}: {", ".join(f"{s} ${s}" for s in STAGES)}"

@@ -341,7 +341,7 @@ for t in tasks:
         codes.append(subprocess.run(["bash", "-c", opts["wrap"]], env=env, stdout=fh,
                                     stderr=subprocess.STDOUT).returncode)
 with open(calls, "a") as fh:
-    fh.write(json.dumps({"opts": opts, "tasks": tasks, "codes": codes}) + "\n")
+    fh.write(json.dumps({"opts": opts, "args": args, "tasks": tasks, "codes": codes}) + "\n")
 print(f"{1000 + n};cluster")
 '''
 
@@ -356,23 +356,59 @@ def test_slurm_export_runs_locally(simmed, tmp_path):
     fake.write_text(FAKE_SBATCH)
     fake.chmod(0o755)
     log = tmp_path / "sbatch.jsonl"
-    env = dict(os.environ, PATH=f"{fake.parent}:{os.environ['PATH']}", FAKE_SBATCH_LOG=str(log))
+    env = dict(os.environ, PATH=f"{fake.parent}:{os.environ['PATH']}", FAKE_SBATCH_LOG=str(log),
+               SPHSHOT_SBATCH='--comment="shot one"', SPHSHOT_SBATCH_SIM="--gres=gpu:1")
     out = subprocess.run(["bash", str(script)], env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     assert "submitted dambreak_v001: sim 1001, surface 1002, render 1003" in out.stdout
     calls = [json.loads(ln) for ln in log.read_text().splitlines()]
     assert [c["opts"]["job-name"] for c in calls] == [f"dambreak_v001.{s}" for s in ("sim", "surface", "render")]
     assert calls[0]["opts"]["signal"] == "B:USR1@120" and "array" not in calls[0]["opts"]
-    assert calls[1]["opts"]["dependency"] == "afterok:1001" and calls[1]["tasks"] == [1, 5]
-    assert calls[2]["opts"]["dependency"] == "aftercorr:1002" and calls[2]["tasks"] == [1, 5]
+    assert "--requeue" in calls[0]["args"]
+    # site options are shell words: a quoted value stays one argument (it was split on spaces)
+    assert all("--comment=shot one" in c["args"] for c in calls) and "--gres=gpu:1" in calls[0]["args"]
+    # array indices are chunk numbers from 0 (frames 1001-1100 stay under MaxArraySize)
+    assert calls[1]["opts"]["dependency"] == "afterok:1001" and calls[1]["tasks"] == [0, 1]
+    assert calls[2]["opts"]["dependency"] == "aftercorr:1002" and calls[2]["tasks"] == [0, 1]
     assert all(code == 0 for c in calls for code in c["codes"]), calls
     logs = sorted(p.name for p in (script.parent / "logs").iterdir())
-    assert logs == ["dambreak_v001.render.1003_1.log", "dambreak_v001.render.1003_5.log",
-                    "dambreak_v001.sim.1001.log", "dambreak_v001.surface.1002_1.log",
-                    "dambreak_v001.surface.1002_5.log"]
-    task_log = (script.parent / "logs" / "dambreak_v001.surface.1002_5.log").read_text()
-    assert "frames 5-6 from SLURM_ARRAY_TASK_ID=5 (chunk 4)" in task_log
+    assert logs == ["dambreak_v001.render.1003_0.log", "dambreak_v001.render.1003_1.log",
+                    "dambreak_v001.sim.1001.log", "dambreak_v001.surface.1002_0.log",
+                    "dambreak_v001.surface.1002_1.log"]
+    task_log = (script.parent / "logs" / "dambreak_v001.surface.1002_1.log").read_text()
+    assert "sphshot: surface: 2 frame(s) to do" in task_log, task_log
     assert_shot_complete(job, args)
+
+
+def test_slurm_sim_requeues_itself_after_a_checkpoint(job_copy, tmp_path):
+    """Issue 19, item 9: a sim stopped by SLURM's warning signal checkpointed and exited 5, and
+    the jobs waiting on it (afterok) stayed pending forever. The exported sim task passes
+    SIGUSR1 on to sphshot and, on exit 5, requeues its own job (a fake scontrol records it)."""
+    import re
+    import signal as sig
+
+    job = job_copy()
+    args = small("shot.frame_end=24", "shot.checkpoint_every=3")
+    script = export(job, args, "slurm").read_text()
+    wrap = re.search(r"--job-name=\S+\.sim .*?--wrap=('(?:[^']|'\"'\"')*')\)", script, re.S).group(1)
+    sim_task = shlex.split(wrap)[0]
+    fake = tmp_path / "bin" / "scontrol"
+    fake.parent.mkdir()
+    fake.write_text(f"#!/bin/sh\necho \"$@\" >> {tmp_path / 'scontrol.log'}\n")
+    fake.chmod(0o755)
+    env = dict(os.environ, PATH=f"{fake.parent}:{os.environ['PATH']}", SLURM_JOB_ID="4242", PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen(["bash", "-c", sim_task], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    paths = cache.ShotPaths.for_spec(spec_of(job, args))
+    deadline = time.time() + 300
+    while not any(c >= 4 for c in paths.checkpoints()) and time.time() < deadline:
+        assert proc.poll() is None, "the sim ended before it could be signalled"
+        time.sleep(0.05)
+    proc.send_signal(sig.SIGUSR1)            # what --signal=B:USR1 sends the batch shell
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 5, out
+    assert "checkpoint written" in out
+    assert (tmp_path / "scontrol.log").read_text().split() == ["requeue", "4242"]
 
 
 # The structure of an OpenCue job spec (cjsl 1.14): children in order, ? optional, * repeated.
@@ -453,3 +489,13 @@ def test_openjd_export_validates_and_runs_with_openjd_cli(simmed, tmp_path):
                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     assert_shot_complete(job, args)
+
+
+def test_export_refuses_a_version_with_stale_frames(simmed, tmp_path):
+    """Issue 19, item 9: an export into a version whose frames were made with other parameters
+    made a farm job whose every task exited 3. It is refused up front, in one line, exit 3."""
+    job = copy_shot(simmed, tmp_path / "shot")
+    proc = sphshot("export", job, *small("sim.gravity=[0.0, -5.0, 0.0]"), "--to", "slurm")
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("sphshot: error")]
+    assert proc.returncode == 3 and len(lines) == 1 and "Traceback" not in proc.stderr
+    assert "sim frame(s) 1-6" in lines[0] and "every farm task of this export would refuse them" in lines[0]
