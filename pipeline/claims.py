@@ -14,6 +14,7 @@ the same instant may both compute the frame: wasted work at worst, never a corru
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import threading
 import time
@@ -21,7 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
-from .cache import HOST, ShotPaths, check_file, pid_alive
+from .cache import HOST, ShotPaths, check_file, pid_alive, write_text_atomic
+from .errors import StaleCacheError
 
 CLAIM_REFRESH_S = 15.0
 CLAIM_STALE_S = 90.0
@@ -200,3 +202,67 @@ class FrameClaims:
             if pending:
                 time.sleep(poll_s)
         return orphaned
+
+
+class VersionRun:
+    """This process, registered as a writer of one shot version with the parameter hashes of
+    the stages it runs: `<version>/.runs/<host>-<pid>.json`, its mtime a heartbeat like a
+    claim's. Entering fails with StaleCacheError (exit 3) when a live run registered earlier
+    writes one of these stages with other parameters: two parameter sets never interleave in a
+    version. Runs with the same parameters (farm tasks, a rerun) share it. When two register
+    at the same instant the earlier registration wins and the later backs off."""
+
+    def __init__(self, root: Path, hashes: dict[str, str]):
+        self.folder = Path(root) / ".runs"
+        self.path = self.folder / f"{HOST}-{os.getpid()}.json"
+        self.hashes = dict(hashes)
+        self.started = time.time()
+        self._stop = threading.Event()
+        self._beat: threading.Thread | None = None
+
+    def __enter__(self) -> "VersionRun":
+        self.folder.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(self.path, json.dumps({"host": HOST, "pid": os.getpid(), "started": self.started,
+                                                 "hashes": self.hashes}))
+        self._beat = threading.Thread(target=self._heartbeat, name="sphshot-version", daemon=True)
+        self._beat.start()
+        other = self._earlier_conflict()
+        if other:
+            self.__exit__()
+            raise StaleCacheError(
+                f"another run ({other['host']} pid {other['pid']}) is writing stage(s) {', '.join(other['stages'])} "
+                f"of {self.folder.parent} with other parameters; wait for it to end, or raise shot.version")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._beat is not None:
+            self._beat.join(timeout=2)
+        with contextlib.suppress(FileNotFoundError):
+            self.path.unlink()
+        with contextlib.suppress(OSError):
+            self.folder.rmdir()             # only when no other run is registered
+
+    def _heartbeat(self) -> None:
+        while not self._stop.wait(CLAIM_REFRESH_S):
+            with contextlib.suppress(OSError):
+                os.utime(self.path)
+
+    def _earlier_conflict(self) -> dict | None:
+        for path in sorted(self.folder.glob("*.json")):
+            if path == self.path:
+                continue
+            try:
+                record = json.loads(path.read_text(encoding="utf-8"))
+                age = time.time() - path.stat().st_mtime
+            except (OSError, ValueError):
+                continue                    # gone, or being written: its owner checks too
+            dead = not pid_alive(record["pid"]) if record.get("host") == HOST else age > CLAIM_STALE_S
+            if dead:
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()
+                continue
+            stages = [s for s, h in self.hashes.items() if record.get("hashes", {}).get(s, h) != h]
+            if stages and (record.get("started", 0.0), path.name) < (self.started, self.path.name):
+                return {**record, "stages": stages}
+        return None

@@ -76,7 +76,8 @@ def run_stages(spec: ShotSpec, stages: list[str], frames: list[int], *, force: b
     shot = ShotCache(spec)
     fresh = not shot.paths.root.exists()
     try:
-        _run(spec, shot, stages, frames, force, executor, progress)
+        with claims.VersionRun(shot.paths.root, {s: shot.hashes[s] for s in stages}):
+            _run(spec, shot, stages, frames, force, executor, progress)
     except BaseException:
         if fresh:       # a failed first run leaves no empty version folder behind
             cache.remove_if_empty(shot.paths)

@@ -541,3 +541,32 @@ def test_clean_removes_stale_frames_and_says_so(shot, tmp_path):
     assert cache.scan(spec, paths, "surface", spec.frames).complete, "another stage was touched"
     assert "surface: nothing to remove" in sphshot("clean", job, *other, "--stage", "surface", "--stale",
                                                    check=True).stdout
+
+
+def test_two_runs_with_other_parameters_never_share_a_version(shot, tmp_path):
+    """Issue 19, item 2: two surface runs at once, iso 0.3 and 0.7, interleaved their frames in
+    one version and both exited 0. The second is refused (exit 3, one line naming the first);
+    a run with the same parameters may join; the first finishes with every frame its own."""
+    job = _copy_shot(shot, tmp_path / "copy")
+    first_args = small("surface.iso=0.3")
+    spec = spec_of(job, first_args)
+    runs = spec.output_root / ".runs"
+    cmd = [sys.executable, "-m", "pipeline.cli", "run", str(job), *first_args, "--stage", "surface", "--force"]
+    first = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), text=True,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.time() + 60
+        while not (runs.is_dir() and list(runs.glob("*.json"))) and time.time() < deadline:
+            assert first.poll() is None, first.communicate()
+            time.sleep(0.02)
+        other = sphshot("run", job, *small("surface.iso=0.7"), "--stage", "surface", "--force")
+        lines = [ln for ln in other.stderr.splitlines() if ln.startswith("sphshot: error")]
+        assert other.returncode == 3 and len(lines) == 1, other.stderr
+        assert f"another run ({cache.HOST} pid {first.pid}) is writing stage(s) surface" in lines[0]
+        same = sphshot("status", job, *first_args, check=True)      # readers are never refused
+        assert "surface" in same.stdout
+    finally:
+        out, err = first.communicate(timeout=300)
+    assert first.returncode == 0, err
+    assert cache.scan(spec, cache.ShotPaths.for_spec(spec), "surface", spec.frames).complete
+    assert not runs.exists(), "the registration was left behind"
