@@ -80,6 +80,12 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--to", choices=("slurm", "opencue", "openjd"), required=True)
     e.add_argument("--chunk", type=_positive, default=4, metavar="N",
                    help="frames per surface/render task (default: 4)")
+    e.add_argument("--show", help="OpenCue show (default: sphshot)")
+    e.add_argument("--service", help="OpenCue service of every layer (default: shell)")
+    e.add_argument("--cpus", type=_positive, metavar="N", help="SLURM: CPUs per task")
+    e.add_argument("--mem", type=_gigabytes, metavar="GB", help="SLURM: memory per task")
+    e.add_argument("--time", metavar="D-HH:MM:SS", help="SLURM: time limit per task")
+    e.add_argument("--gpus", type=_positive, metavar="N", help="SLURM: GPUs for the sim task")
     e.add_argument("-o", "--output", metavar="FILE",
                    help="where to write it (default: <shot folder>/farm/<name>.<slurm.sh|cue.xml|openjd.json>)")
 
@@ -259,8 +265,10 @@ def cmd_export(args) -> int:
                                   f"were made with other parameters, so every farm task of this export would "
                                   f"refuse them; run --stage {stage} --force (or sphshot clean --stale) first, "
                                   f"or raise shot.version")
+    farm = {"show": args.show, "service": args.service, "cpus": args.cpus,
+            "mem_gb": args.mem / 2 ** 30 if args.mem else None, "time": args.time, "gpus": args.gpus}
     path = export_job(spec, Path(args.job).resolve(), args.overrides, args.to, args.chunk,
-                      Path(args.output) if args.output else None)
+                      Path(args.output) if args.output else None, farm)
     print(f"sphshot: wrote {args.to} job {path}")
     return 0
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import getpass
 import json
+import math
 import shlex
 import sys
 import xml.etree.ElementTree as ET
@@ -49,10 +50,12 @@ def run_args(job: Path, overrides: list[str], stage: str) -> list[str]:
 
 
 def export_job(spec: ShotSpec, job: Path, overrides: list[str], to: str, chunk: int,
-               output: Path | None = None) -> Path:
+               output: Path | None = None, farm: dict | None = None) -> Path:
+    """`farm`: site settings from the command line -- show and service (OpenCue); cpus,
+    mem_gb, time and gpus (SLURM requests; gpus go to the sim only)."""
     out = output or spec.output_root / "farm" / f"{spec.shot.name}.{SUFFIX[to]}"
     text = {"slurm": slurm_script, "opencue": opencue_xml, "openjd": openjd_template}[to](
-        spec, job, overrides, chunk)
+        spec, job, overrides, chunk, **({"farm": farm or {}} if to != "openjd" else {}))
     write_text_atomic(Path(out), text)
     if to == "slurm":
         Path(out).chmod(0o755)
@@ -64,7 +67,7 @@ def _job_name(spec: ShotSpec) -> str:
 
 
 # ----------------------------------------------------------------------------------- SLURM
-def slurm_script(spec: ShotSpec, job: Path, overrides: list[str], chunk: int) -> str:
+def slurm_script(spec: ShotSpec, job: Path, overrides: list[str], chunk: int, farm: dict | None = None) -> str:
     cmd = sphshot_command()
     a, b = spec.shot.frame_start, spec.shot.frame_end
     tasks = (b - a) // chunk + 1
@@ -119,21 +122,39 @@ SBATCH="${{SBATCH:-sbatch}}"
 LOGS={shlex.quote(str(logs))}
 mkdir -p "$LOGS"
 eval "site=(${{SPHSHOT_SBATCH:-}})"
-eval "sim_extra=(${{SPHSHOT_SBATCH_SIM:-}})"
-common=(--parsable "${{site[@]}}")
+eval "sim_extra=({_sim_requests(farm or {})} ${{SPHSHOT_SBATCH_SIM:-}})"
+common=(--parsable {_requests(farm or {})}"${{site[@]}}")
 
 {submissions}
 echo "sphshot: submitted {name}: {", ".join(f"{s} ${s}" for s in STAGES)}"
 """
 
 
+def _requests(farm: dict) -> str:
+    """Every job's resource requests from the command line, as sbatch words (site options in
+    SPHSHOT_SBATCH come after them and win)."""
+    words = []
+    if farm.get("cpus"):
+        words.append(f"--cpus-per-task={int(farm['cpus'])}")
+    if farm.get("mem_gb"):
+        words.append(f"--mem={max(1, math.ceil(float(farm['mem_gb']) * 1024))}M")
+    if farm.get("time"):
+        words.append(f"--time={farm['time']}")
+    return "".join(shlex.quote(w) + " " for w in words)
+
+
+def _sim_requests(farm: dict) -> str:
+    return f"--gres=gpu:{int(farm['gpus'])}" if farm.get("gpus") else ""
+
+
 # --------------------------------------------------------------------------------- OpenCue
-def opencue_xml(spec: ShotSpec, job: Path, overrides: list[str], chunk: int) -> str:
+def opencue_xml(spec: ShotSpec, job: Path, overrides: list[str], chunk: int, farm: dict | None = None) -> str:
+    farm = farm or {}
     cmd = sphshot_command()
     name = _job_name(spec)
     a, b = spec.shot.frame_start, spec.shot.frame_end
     root = ET.Element("spec")
-    for tag, text in (("show", "sphshot"), ("shot", spec.shot.name), ("user", getpass.getuser())):
+    for tag, text in (("show", farm.get("show") or "sphshot"), ("shot", spec.shot.name), ("user", getpass.getuser())):
         ET.SubElement(root, tag).text = text
     job_el = ET.SubElement(root, "job", name=name)
     for tag, text in (("paused", "False"), ("maxretries", "2"), ("autoeat", "False")):
@@ -146,7 +167,7 @@ def opencue_xml(spec: ShotSpec, job: Path, overrides: list[str], chunk: int) -> 
         ET.SubElement(el, "range").text = frames
         ET.SubElement(el, "chunk").text = str(size)
         services = ET.SubElement(el, "services")
-        ET.SubElement(services, "service").text = "shell"
+        ET.SubElement(services, "service").text = farm.get("service") or "shell"
 
     chunked = ["--frames", "#FRAME_START#-#FRAME_END#"]
     for stage in STAGES.values():

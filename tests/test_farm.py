@@ -303,8 +303,8 @@ def test_dask_task_survives_a_killed_worker(simmed, tmp_path):
 
 
 # ---------------------------------------------------------------------------------- exports
-def export(job, args, to, chunk=4) -> Path:
-    proc = sphshot("export", job, *args, "--to", to, "--chunk", chunk, check=True)
+def export(job, args, to, chunk=4, extra=()) -> Path:
+    proc = sphshot("export", job, *args, "--to", to, "--chunk", chunk, *extra, check=True)
     return Path(proc.stdout.strip().rsplit(" ", 1)[1])
 
 
@@ -349,7 +349,7 @@ print(f"{1000 + n};cluster")
 def test_slurm_export_runs_locally(simmed, tmp_path):
     job = copy_shot(simmed, tmp_path / "shot")
     args = small()
-    script = export(job, args, "slurm")
+    script = export(job, args, "slurm", extra=("--cpus", "2", "--mem", "1", "--time", "0:30:00", "--gpus", "2"))
     subprocess.run(["bash", "-n", str(script)], check=True)
     fake = tmp_path / "bin" / "sbatch"
     fake.parent.mkdir()
@@ -367,6 +367,10 @@ def test_slurm_export_runs_locally(simmed, tmp_path):
     assert "--requeue" in calls[0]["args"]
     # site options are shell words: a quoted value stays one argument (it was split on spaces)
     assert all("--comment=shot one" in c["args"] for c in calls) and "--gres=gpu:1" in calls[0]["args"]
+    # resource requests from the command line: every job, and GPUs for the sim alone
+    for c in calls:
+        assert {"--cpus-per-task=2", "--mem=1024M", "--time=0:30:00"} <= set(c["args"]), c["args"]
+    assert "--gres=gpu:2" in calls[0]["args"] and not any("gpu" in a for c in calls[1:] for a in c["args"])
     # array indices are chunk numbers from 0 (frames 1001-1100 stay under MaxArraySize)
     assert calls[1]["opts"]["dependency"] == "afterok:1001" and calls[1]["tasks"] == [0, 1]
     assert calls[2]["opts"]["dependency"] == "aftercorr:1002" and calls[2]["tasks"] == [0, 1]
@@ -454,10 +458,12 @@ def check_cjsl(el: ET.Element) -> None:
 def test_opencue_export_is_well_formed_and_runs_locally(simmed, tmp_path):
     job = copy_shot(simmed, tmp_path / "shot")
     args = small()
-    path = export(job, args, "opencue")
+    path = export(job, args, "opencue", extra=("--show", "fx_show", "--service", "sphshot_cpu"))
     assert "cjsl-1.14.dtd" in path.read_text()
     root = ET.parse(path).getroot()
     check_cjsl(root)
+    assert root.findtext("show") == "fx_show"
+    assert {s.text for s in root.iter("service")} == {"sphshot_cpu"}
     layers = {el.get("name"): el for el in root.iter("layer")}
     assert list(layers) == ["sim", "surface", "render"]
     deps = {(d.get("type"), d.findtext("deplayer"), d.findtext("onlayer")) for d in root.iter("depend")}
