@@ -270,6 +270,9 @@ def cmd_export(args) -> int:
     path = export_job(spec, Path(args.job).resolve(), args.overrides, args.to, args.chunk,
                       Path(args.output) if args.output else None, farm)
     print(f"sphshot: wrote {args.to} job {path}")
+    if args.to == "openjd":        # PATH parameters, for the workers' path mapping
+        print(f"sphshot: its job parameters: -p JobFile={Path(args.job).resolve()} "
+              f"-p ShotOutput={spec.output_root.parent.parent}")
     return 0
 
 

@@ -15,7 +15,8 @@ frame of its chunk is valid on disk.
   by frame (``FRAME_BY_FRAME``), surface on the whole sim layer (``LAYER_ON_LAYER``).
 - ``openjd``: an Open Job Description template (jobtemplate-2023-09) with three steps and a
   ``Frame`` task parameter stepping by the chunk size; cancelation sends SIGTERM first, which
-  makes the sim checkpoint.
+  makes the sim checkpoint. The job file and the output folder are PATH parameters, which
+  workers' path-mapping rules rewrite.
 """
 from __future__ import annotations
 
@@ -54,8 +55,9 @@ def export_job(spec: ShotSpec, job: Path, overrides: list[str], to: str, chunk: 
     """`farm`: site settings from the command line -- show and service (OpenCue); cpus,
     mem_gb, time and gpus (SLURM requests; gpus go to the sim only)."""
     out = output or spec.output_root / "farm" / f"{spec.shot.name}.{SUFFIX[to]}"
+    extra = {} if to == "openjd" else {"farm": farm or {}}
     text = {"slurm": slurm_script, "opencue": opencue_xml, "openjd": openjd_template}[to](
-        spec, job, overrides, chunk, **({"farm": farm or {}} if to != "openjd" else {}))
+        spec, job, overrides, chunk, **extra)
     write_text_atomic(Path(out), text)
     if to == "slurm":
         Path(out).chmod(0o755)
@@ -192,11 +194,19 @@ def opencue_xml(spec: ShotSpec, job: Path, overrides: list[str], chunk: int, far
 
 # ---------------------------------------------------------------------------------- OpenJD
 def openjd_template(spec: ShotSpec, job: Path, overrides: list[str], chunk: int) -> str:
+    """The job file and the shot's output folder are PATH job parameters (JobFile, ShotOutput),
+    so a worker's path-mapping rules (another OS, another mount point) map them; the tasks read
+    them as {{Param.JobFile}} and --set shot.output='{{Param.ShotOutput}}'. OpenJD allows a
+    PATH parameter no default outside the template's folder, so the submitter gives both (the
+    values of this export are in their descriptions): openjd run T -p JobFile=... -p ShotOutput=..."""
     cmd = sphshot_command()
     a, b = spec.shot.frame_start, spec.shot.frame_end
+    shot_output = spec.output_root.parent.parent           # <output>/<name>/v### -> <output>
+    mapped = [*overrides, "shot.output='{{Param.ShotOutput}}'"]
 
     def action(stage: str, extra: list[str]) -> dict:
-        return {"onRun": {"command": cmd[0], "args": cmd[1:] + run_args(job, overrides, stage) + extra,
+        return {"onRun": {"command": cmd[0],
+                          "args": cmd[1:] + run_args(Path("{{Param.JobFile}}"), mapped, stage) + extra,
                           "cancelation": {"mode": "NOTIFY_THEN_TERMINATE", "notifyPeriodInSeconds": 120}}}
 
     frame_param = {"taskParameterDefinitions": [{"name": "Frame", "type": "INT", "range": f"{a}-{b}:{chunk}"}]}
@@ -214,6 +224,12 @@ def openjd_template(spec: ShotSpec, job: Path, overrides: list[str], chunk: int)
     template = {
         "specificationVersion": "jobtemplate-2023-09",
         "name": f"sphshot {spec.shot.name} v{spec.shot.version:03d}",
+        "parameterDefinitions": [
+            {"name": "JobFile", "type": "PATH", "objectType": "FILE", "dataFlow": "IN",
+             "description": f"the sphshot job file (TOML); exported with {job}"},
+            {"name": "ShotOutput", "type": "PATH", "objectType": "DIRECTORY", "dataFlow": "OUT",
+             "description": f"shot.output, the folder the shot is written below; exported with {shot_output}"},
+        ],
         "steps": [step(stage) for stage in STAGES.values()],
     }
     return json.dumps(template, indent=2) + "\n"

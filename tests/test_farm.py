@@ -305,7 +305,8 @@ def test_dask_task_survives_a_killed_worker(simmed, tmp_path):
 # ---------------------------------------------------------------------------------- exports
 def export(job, args, to, chunk=4, extra=()) -> Path:
     proc = sphshot("export", job, *args, "--to", to, "--chunk", chunk, *extra, check=True)
-    return Path(proc.stdout.strip().rsplit(" ", 1)[1])
+    wrote = next(ln for ln in proc.stdout.splitlines() if ln.startswith("sphshot: wrote"))
+    return Path(wrote.rsplit(" ", 1)[1])
 
 
 def assert_shot_complete(job, args):
@@ -489,9 +490,17 @@ def test_openjd_export_validates_and_runs_with_openjd_cli(simmed, tmp_path):
     job = copy_shot(simmed, tmp_path / "shot")
     args = small()
     path = export(job, args, "openjd")
+    template = json.loads(path.read_text())
+    params = {p["name"]: p for p in template["parameterDefinitions"]}
+    assert params["JobFile"]["type"] == "PATH" and str(job.resolve()) in params["JobFile"]["description"]
+    assert params["ShotOutput"]["type"] == "PATH" and params["ShotOutput"]["dataFlow"] == "OUT"
+    args_of = [s["script"]["actions"]["onRun"]["args"] for s in template["steps"]]
+    assert all("{{Param.JobFile}}" in a and "shot.output='{{Param.ShotOutput}}'" in a for a in args_of)
     check = subprocess.run([str(openjd), "check", str(path)], capture_output=True, text=True)
     assert check.returncode == 0 and "passes validation" in check.stdout, check.stdout + check.stderr
-    run = subprocess.run([str(openjd), "run", str(path), "--step", "render", "--run-dependencies"],
+    spec = spec_of(job, args)
+    given = ["-p", f"JobFile={job.resolve()}", "-p", f"ShotOutput={spec.output_root.parent.parent}"]
+    run = subprocess.run([str(openjd), "run", str(path), *given, "--step", "render", "--run-dependencies"],
                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     assert_shot_complete(job, args)
