@@ -222,3 +222,21 @@ def test_version(capsys):
         main(["--version"])
     assert exc.value.code == 0
     assert capsys.readouterr().out.strip() == f"sphshot {version('sphshot')}"
+
+
+def test_a_huge_mesh_collider_is_caught_by_the_estimate(tmp_path, capsys):
+    """Issue 19, item 4: a mesh collider scaled far beyond the domain took 24 GB for its
+    distance grid (OpenVDB voxelises the whole mesh; the spec's voxel guard counts only the
+    part inside the domain). The estimate counts the whole mesh and stops it in one line."""
+    import shutil
+    from pathlib import Path
+
+    jobs = Path(__file__).resolve().parents[1] / "jobs"
+    shutil.copytree(jobs, tmp_path / "jobs")
+    job = tmp_path / "jobs" / "boulder.toml"
+    code = main(["validate", str(job), "--set", "colliders.0.scale=60"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1, err
+    assert "collider grids" in lines[0] and "change the mesh colliders' voxel_size (or their scale)" in lines[0]
+    assert main(["validate", str(job)]) == 0
