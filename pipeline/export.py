@@ -53,9 +53,10 @@ def run_args(job: Path, overrides: list[str], stage: str) -> list[str]:
 def export_job(spec: ShotSpec, job: Path, overrides: list[str], to: str, chunk: int,
                output: Path | None = None, farm: dict | None = None) -> Path:
     """`farm`: site settings from the command line -- show and service (OpenCue); cpus,
-    mem_gb, time and gpus (SLURM requests; gpus go to the sim only)."""
+    mem_gb, time and gpus: SLURM requests, OpenJD host requirements, OpenCue cores and GPUs
+    (GPUs go to the sim only)."""
     out = output or spec.output_root / "farm" / f"{spec.shot.name}.{SUFFIX[to]}"
-    extra = {} if to == "openjd" else {"farm": farm or {}}
+    extra = {"farm": farm or {}}
     text = {"slurm": slurm_script, "opencue": opencue_xml, "openjd": openjd_template}[to](
         spec, job, overrides, chunk, **extra)
     write_text_atomic(Path(out), text)
@@ -149,6 +150,18 @@ def _sim_requests(farm: dict) -> str:
     return f"--gres=gpu:{int(farm['gpus'])}" if farm.get("gpus") else ""
 
 
+def _openjd_amounts(farm: dict, gpu: bool) -> list[dict]:
+    """OpenJD host requirements from the command line (GPUs for the sim only)."""
+    out = []
+    if farm.get("cpus"):
+        out.append({"name": "amount.worker.vcpu", "min": int(farm["cpus"])})
+    if farm.get("mem_gb"):
+        out.append({"name": "amount.worker.memory", "min": max(1, math.ceil(float(farm["mem_gb"]) * 1024))})
+    if gpu and farm.get("gpus"):
+        out.append({"name": "amount.worker.gpu", "min": int(farm["gpus"])})
+    return out
+
+
 # --------------------------------------------------------------------------------- OpenCue
 def opencue_xml(spec: ShotSpec, job: Path, overrides: list[str], chunk: int, farm: dict | None = None) -> str:
     farm = farm or {}
@@ -168,6 +181,10 @@ def opencue_xml(spec: ShotSpec, job: Path, overrides: list[str], chunk: int, far
         ET.SubElement(el, "cmd").text = shlex.join(cmd + run_args(job, overrides, stage) + extra)
         ET.SubElement(el, "range").text = frames
         ET.SubElement(el, "chunk").text = str(size)
+        if farm.get("cpus"):
+            ET.SubElement(el, "cores").text = str(int(farm["cpus"]))
+        if farm.get("gpus") and stage == "sim":
+            ET.SubElement(el, "gpus").text = str(int(farm["gpus"]))
         services = ET.SubElement(el, "services")
         ET.SubElement(services, "service").text = farm.get("service") or "shell"
 
@@ -193,7 +210,7 @@ def opencue_xml(spec: ShotSpec, job: Path, overrides: list[str], chunk: int, far
 
 
 # ---------------------------------------------------------------------------------- OpenJD
-def openjd_template(spec: ShotSpec, job: Path, overrides: list[str], chunk: int) -> str:
+def openjd_template(spec: ShotSpec, job: Path, overrides: list[str], chunk: int, farm: dict | None = None) -> str:
     """The job file and the shot's output folder are PATH job parameters (JobFile, ShotOutput),
     so a worker's path-mapping rules (another OS, another mount point) map them; the tasks read
     them as {{Param.JobFile}} and --set shot.output='{{Param.ShotOutput}}'. OpenJD allows a
@@ -218,6 +235,9 @@ def openjd_template(spec: ShotSpec, job: Path, overrides: list[str], chunk: int)
             out["dependencies"] = [{"dependsOn": stage.upstream}]
         if stage.per_frame:
             out["parameterSpace"] = frame_param
+        amounts = _openjd_amounts(farm or {}, gpu=not stage.per_frame)
+        if amounts:
+            out["hostRequirements"] = {"amounts": amounts}
         out["script"] = {"actions": action(stage.name, chunked if stage.per_frame else [])}
         return out
 

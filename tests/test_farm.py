@@ -459,12 +459,15 @@ def check_cjsl(el: ET.Element) -> None:
 def test_opencue_export_is_well_formed_and_runs_locally(simmed, tmp_path):
     job = copy_shot(simmed, tmp_path / "shot")
     args = small()
-    path = export(job, args, "opencue", extra=("--show", "fx_show", "--service", "sphshot_cpu"))
+    path = export(job, args, "opencue", extra=("--show", "fx_show", "--service", "sphshot_cpu", "--cpus", "2",
+                                               "--gpus", "1"))
     assert "cjsl-1.14.dtd" in path.read_text()
     root = ET.parse(path).getroot()
     check_cjsl(root)
     assert root.findtext("show") == "fx_show"
     assert {s.text for s in root.iter("service")} == {"sphshot_cpu"}
+    assert [el.findtext("cores") for el in root.iter("layer")] == ["2", "2", "2"]
+    assert [el.findtext("gpus") for el in root.iter("layer")] == ["1", None, None]      # the sim's alone
     layers = {el.get("name"): el for el in root.iter("layer")}
     assert list(layers) == ["sim", "surface", "render"]
     deps = {(d.get("type"), d.findtext("deplayer"), d.findtext("onlayer")) for d in root.iter("depend")}
@@ -497,6 +500,15 @@ def test_openjd_export_validates_and_runs_with_openjd_cli(simmed, tmp_path):
     args_of = [s["script"]["actions"]["onRun"]["args"] for s in template["steps"]]
     assert all("{{Param.JobFile}}" in a and "shot.output='{{Param.ShotOutput}}'" in a for a in args_of)
     check = subprocess.run([str(openjd), "check", str(path)], capture_output=True, text=True)
+    assert check.returncode == 0 and "passes validation" in check.stdout, check.stdout + check.stderr
+    # resource requests become host requirements (GPUs for the sim alone), and still validate
+    sized = export(job, args, "openjd", extra=("--cpus", "4", "--mem", "8", "--gpus", "1", "-o",
+                                               str(tmp_path / "sized" / "t.json")))
+    amounts = [{a["name"]: a["min"] for a in s["hostRequirements"]["amounts"]}
+               for s in json.loads(sized.read_text())["steps"]]
+    assert amounts[0] == {"amount.worker.vcpu": 4, "amount.worker.memory": 8192, "amount.worker.gpu": 1}
+    assert amounts[1] == amounts[2] == {"amount.worker.vcpu": 4, "amount.worker.memory": 8192}
+    check = subprocess.run([str(openjd), "check", str(sized)], capture_output=True, text=True)
     assert check.returncode == 0 and "passes validation" in check.stdout, check.stdout + check.stderr
     spec = spec_of(job, args)
     given = ["-p", f"JobFile={job.resolve()}", "-p", f"ShotOutput={spec.output_root.parent.parent}"]
