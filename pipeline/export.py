@@ -183,6 +183,8 @@ def opencue_xml(spec: ShotSpec, job: Path, overrides: list[str], chunk: int, far
         ET.SubElement(el, "chunk").text = str(size)
         if farm.get("cpus"):
             ET.SubElement(el, "cores").text = str(int(farm["cpus"]))
+        if farm.get("mem_gb"):      # cuebot reads "<n>m" as megabytes (a bare number: gigabytes)
+            ET.SubElement(el, "memory").text = f"{max(1, math.ceil(float(farm['mem_gb']) * 1024))}m"
         if farm.get("gpus") and stage == "sim":
             ET.SubElement(el, "gpus").text = str(int(farm["gpus"]))
         services = ET.SubElement(el, "services")

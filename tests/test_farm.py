@@ -460,13 +460,14 @@ def test_opencue_export_is_well_formed_and_runs_locally(simmed, tmp_path):
     job = copy_shot(simmed, tmp_path / "shot")
     args = small()
     path = export(job, args, "opencue", extra=("--show", "fx_show", "--service", "sphshot_cpu", "--cpus", "2",
-                                               "--gpus", "1"))
+                                               "--mem", "1.5", "--gpus", "1"))
     assert "cjsl-1.14.dtd" in path.read_text()
     root = ET.parse(path).getroot()
     check_cjsl(root)
     assert root.findtext("show") == "fx_show"
     assert {s.text for s in root.iter("service")} == {"sphshot_cpu"}
     assert [el.findtext("cores") for el in root.iter("layer")] == ["2", "2", "2"]
+    assert [el.findtext("memory") for el in root.iter("layer")] == ["1536m"] * 3      # cuebot: m = megabytes
     assert [el.findtext("gpus") for el in root.iter("layer")] == ["1", None, None]      # the sim's alone
     layers = {el.get("name"): el for el in root.iter("layer")}
     assert list(layers) == ["sim", "surface", "render"]
