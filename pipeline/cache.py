@@ -320,7 +320,7 @@ def output_problem(root: Path) -> str | None:
     if not p.is_dir():
         return f"{p} is a file, not a folder: the shot is written to {root}"
     if not os.access(p, os.W_OK | os.X_OK):
-        return f"cannot write in {p} (permission denied): the shot is written to {root}"
+        return f"cannot write in {p} (no permission, or a read-only filesystem): the shot is written to {root}"
     return None
 
 

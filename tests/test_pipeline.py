@@ -570,3 +570,30 @@ def test_two_runs_with_other_parameters_never_share_a_version(shot, tmp_path):
     assert first.returncode == 0, err
     assert cache.scan(spec, cache.ShotPaths.for_spec(spec), "surface", spec.frames).complete
     assert not runs.exists(), "the registration was left behind"
+
+
+def test_a_really_full_disk_is_one_line_and_leaves_only_whole_frames(job_copy, tmp_path):
+    """The same on a real 3 MB tmpfs (skipped where this machine cannot mount one): the small
+    shot needs about 6.6 MB, so a write fails part-way. One line, exit 1, no traceback, no
+    temporary left, and every file on disk is a whole, stamped frame."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(disk)],
+                             capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip() or mounted.returncode}")
+    try:
+        job = job_copy()
+        args = small(f'shot.output="{disk}"')
+        proc = sphshot("run", job, *args)
+        errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("sphshot: error")]
+        assert proc.returncode == 1 and len(errors) == 1 and "Traceback" not in proc.stderr, proc.stderr
+        assert "No space left on device" in errors[0] or "could not be read back" in errors[0], errors[0]
+        spec = spec_of(job, args)
+        paths = cache.ShotPaths.for_spec(spec)
+        assert not [p for p in spec.output_root.rglob("*.tmp")], "a temporary was left"
+        for stage in cache.STAGES:
+            sc = cache.ShotCache(spec, paths).scan(stage, spec.frames, verify=True)
+            assert not sc.corrupt and not sc.stale, (stage, sc)
+    finally:
+        subprocess.run(["umount", str(disk)], check=False)

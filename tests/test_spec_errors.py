@@ -240,3 +240,28 @@ def test_a_huge_mesh_collider_is_caught_by_the_estimate(tmp_path, capsys):
     assert code == 2 and len(lines) == 1, err
     assert "collider grids" in lines[0] and "change the mesh colliders' voxel_size (or their scale)" in lines[0]
     assert main(["validate", str(job)]) == 0
+
+
+def test_an_output_folder_that_cannot_be_written_is_one_line(tmp_path, capsys):
+    """Issue 19, item 7: an unwritable output folder was a traceback once the first stage ran.
+    A read-only filesystem (a tmpfs mounted read-only; skipped where this machine cannot mount
+    one -- as root, permission bits alone do not stop a write) is one line, exit 2, before
+    anything runs."""
+    import subprocess
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(ro)],
+                             capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip() or mounted.returncode}")
+    try:
+        job = tmp_path / "job.toml"
+        job.write_text(GOOD.replace('output = "out"', f'output = "{ro}/shots"'))
+        for command in ("validate", "run"):
+            code = main([command, str(job)])
+            lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+            assert code == 2 and len(lines) == 1, lines
+            assert f"shot.output: cannot write in {ro} (no permission, or a read-only filesystem)" in lines[0]
+    finally:
+        subprocess.run(["umount", str(ro)], check=False)
