@@ -112,18 +112,34 @@ def file_digest(file: Path) -> tuple[int, str]:
     return size, h.hexdigest()
 
 
-def stamp(file: Path, stage_hash: str) -> None:
+def stamp(file: Path, stage_hash: str, upstream: dict[str, str] | None = None) -> None:
     """Record beside a just-published frame file what it was made from (the stage's parameter
-    hash, chained to its upstream stages') and what was written (size and digest). A frame
-    counts as valid only when its stamps match its files and the current parameters."""
+    hash, chained to its upstream stages', and the digests of the upstream frame's files) and
+    what was written (size and digest). A frame counts as valid only when its stamps match its
+    files, the current parameters and the upstream frame as it is now."""
     size, digest = file_digest(file)
-    write_text_atomic(stamp_path(file), json.dumps({"hash": stage_hash, "size": size, "blake2b": digest}))
+    record = {"hash": stage_hash, "size": size, "blake2b": digest}
+    if upstream:
+        record["upstream"] = upstream
+    write_text_atomic(stamp_path(file), json.dumps(record))
 
 
-def check_file(file: Path, stage_hash: str, verify: bool = False) -> str:
+def stamped_digests(files) -> dict[str, str]:
+    """{file name: the digest its stamp records} for files that have a readable stamp."""
+    out = {}
+    for f in files:
+        try:
+            out[Path(f).name] = json.loads(stamp_path(Path(f)).read_text(encoding="utf-8"))["blake2b"]
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+    return out
+
+
+def check_file(file: Path, stage_hash: str, verify: bool = False, upstream: dict[str, str] | None = None) -> str:
     """'missing'; 'corrupt' (no stamp, or not the size stamped -- a truncated copy, a write that
     failed without an error -- or with `verify` not the digest); 'stale' (made with other
-    parameters); or 'valid'."""
+    parameters, or, given `upstream` (the upstream frame's stamped digests now), from another
+    upstream frame); or 'valid'."""
     try:
         size = file.stat().st_size
     except FileNotFoundError:
@@ -136,6 +152,8 @@ def check_file(file: Path, stage_hash: str, verify: bool = False) -> str:
         return "corrupt"
     if verify and file_digest(file)[1] != record.get("blake2b"):
         return "corrupt"
+    if upstream is not None and "upstream" in record and record["upstream"] != upstream:
+        return "stale"          # made from an upstream frame that has been computed again since
     return "valid" if record.get("hash") == stage_hash else "stale"
 
 
@@ -285,7 +303,9 @@ class ShotCache:
         changed = recorded is not None and recorded != current
         found: dict[str, list[int]] = {"valid": [], "missing": [], "stale": [], "corrupt": []}
         for f in frames:
-            states = {check_file(p, current, verify) for p in self.paths.frame_files(stage, f)}
+            up = _STAGES[stage].upstream
+            inputs = stamped_digests(self.paths.frame_files(up, f)) if up else None
+            states = {check_file(p, current, verify, inputs) for p in self.paths.frame_files(stage, f)}
             state = next(s for s in ("missing", "corrupt", "stale", "valid") if s in states)
             found[state].append(f)
         return StageScan(stage, tuple(found["valid"]), tuple(found["missing"]), tuple(found["stale"]), changed,

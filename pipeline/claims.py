@@ -22,8 +22,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
-from .cache import HOST, ShotPaths, check_file, pid_alive, write_text_atomic
+from .cache import HOST, ShotPaths, check_file, pid_alive, stamped_digests, write_text_atomic
 from .errors import StaleCacheError
+from .stages import STAGES
 
 CLAIM_REFRESH_S = 15.0
 CLAIM_STALE_S = 90.0
@@ -151,8 +152,11 @@ class FrameClaims:
             mtimes = [p.stat().st_mtime for p in files]
         except FileNotFoundError:
             return False
-        if self.stage_hash is not None and any(check_file(p, self.stage_hash) != "valid" for p in files):
-            return False
+        if self.stage_hash is not None:
+            up = STAGES[self.stage].upstream
+            inputs = stamped_digests(self.paths.frame_files(up, frame)) if up else None
+            if any(check_file(p, self.stage_hash, upstream=inputs) != "valid" for p in files):
+                return False
         return self.since is None or min(mtimes) >= self.since
 
     def __iter__(self) -> Iterator[int]:

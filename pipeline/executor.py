@@ -18,7 +18,7 @@ import uuid
 from pathlib import Path
 from dataclasses import dataclass
 
-from .cache import stage_hashes, stamp, stamp_path
+from .cache import stage_hashes, stamp, stamp_path, stamped_digests
 from .claims import FrameClaims, read_owner, release, try_claim
 from .errors import Busy, Interrupted, SphshotError, StageError
 from .frames import format_frames
@@ -44,8 +44,10 @@ class _Stamping:
         self.progress, self.stage, self.stage_hash, self.paths = progress, stage, stage_hash, paths
 
     def frame_done(self, frame: int, files=()) -> None:
+        up = STAGES[self.stage].upstream
+        inputs = stamped_digests(self.paths.frame_files(up, frame)) if up and files else None
         for f in files:
-            stamp(Path(f), self.stage_hash)
+            stamp(Path(f), self.stage_hash, inputs)
         if files:
             for old in self.paths.frame_leftovers(self.stage, frame):
                 for p in (old, stamp_path(old)):

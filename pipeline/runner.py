@@ -14,13 +14,18 @@ from .spec import ShotSpec
 from .stages import STAGES
 
 
+def _since(stage: str) -> str:
+    up = STAGES[stage].upstream
+    return f" (or from {up} frames computed again since)" if up else ""
+
+
 def plan_stage(sc: cache.StageScan, paths: ShotPaths, frames: list[int], force: bool) -> list[int]:
     """Frames the stage must compute; raises StaleCacheError when it would mix parameters."""
     stage = sc.stage
     if sc.stale and not force:
         raise StaleCacheError(
             f"{stage}: frame(s) {format_frames(sc.stale)} in {paths.stage_dir(stage)} were made with "
-            f"other parameters; rerun with --stage {stage} --force to recompute them, or raise "
+            f"other parameters{_since(stage)}; rerun with --stage {stage} --force to recompute them, or raise "
             f"shot.version to keep both")
     if force:
         return list(frames)
@@ -60,6 +65,8 @@ def plan_run(shot: ShotCache, stages: list[str], frames: list[int], force: bool)
         claims.remove_dead_claims(paths.stage_dir(stage))
         sc = shot.scan(stage, frames)
         todo = plan_stage(sc, paths, frames, force)
+        if plans and STAGES[stage].per_frame:   # frames whose upstream this run computes again
+            todo = sorted(set(todo) | (set(plans[-1].todo) & set(frames)))
         if i == 0:
             check_upstream(shot, stage, todo)
         if force and stage == "sim" and (sc.hash_changed or sc.stale):

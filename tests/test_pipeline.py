@@ -383,8 +383,8 @@ def test_a_truncated_frame_is_corrupt_and_computed_again(shot, tmp_path):
     """Issue 19, item 5: a truncated sim frame, mesh and render (a copy cut short, a writer that
     failed without an error) counted as valid. Each frame's files are stamped with their size
     and digest when published: status says corrupt, and run computes exactly those frames again
-    (downstream of a corrupt sim frame, once it is good again); `status --verify` also finds a
-    file changed at its own size."""
+    (and what was made from them); `status --verify` also finds a file changed at its own
+    size."""
     job = _copy_shot(shot, tmp_path / "copy")
     spec = spec_of(job, small())
     paths = cache.ShotPaths.for_spec(spec)
@@ -395,10 +395,12 @@ def test_a_truncated_frame_is_corrupt_and_computed_again(shot, tmp_path):
     assert "(corrupt: 5)" in _status_line(status, "render"), status
     before = mtimes(spec.output_root / "render")
     proc = sphshot("run", job, *small(), check=True)
-    assert "sphshot: surface: 1 frame(s) in" in proc.stdout and "sphshot: render: 1 frame(s) in" in proc.stdout
+    # surface 4 again; render 5 (corrupt) and 4 (its surface frame is new)
+    assert "sphshot: surface: 1 frame(s) in" in proc.stdout and "sphshot: render: 2 frame(s) in" in proc.stdout
     after = mtimes(spec.output_root / "render")
     changed = {name for name in after if after[name] != before.get(name)}
-    assert changed >= {f"{spec.shot.name}.0005.png"} and f"{spec.shot.name}.0004.png" not in changed
+    frames_changed = {n for n in changed if n.endswith(".png") and ".contact." not in n}
+    assert frames_changed == {f"{spec.shot.name}.0004.png", f"{spec.shot.name}.0005.png"}, changed
     for stage in cache.STAGES:
         assert cache.scan(spec, paths, stage, spec.frames).complete, stage
     # same size, other bytes: only a full read finds it
@@ -597,3 +599,26 @@ def test_a_really_full_disk_is_one_line_and_leaves_only_whole_frames(job_copy, t
             assert not sc.corrupt and not sc.stale, (stage, sc)
     finally:
         subprocess.run(["umount", str(disk)], check=False)
+
+
+def test_a_frame_made_from_an_upstream_frame_since_recomputed_is_stale(shot, tmp_path):
+    """Issue 19: each file records its upstream frame's identity too. A sim frame computed
+    again into other bytes (here: edited and stamped as if its writer had made it) leaves the
+    surface frame made from the old one stale (its render follows once that is computed
+    again); the others stay valid, and `--stage surface+ --frames 3 --force` mends it."""
+    job = _copy_shot(shot, tmp_path / "copy")
+    spec = spec_of(job, small())
+    paths = cache.ShotPaths.for_spec(spec)
+    sim3 = paths.sim_frame(3)
+    with h5py.File(sim3, "r+") as f:
+        f["position"][0] += np.float32(1e-4)
+    cache.stamp(sim3, cache.stage_hashes(spec)["sim"])
+    shot_cache = cache.ShotCache(spec, paths)
+    assert shot_cache.scan("sim", spec.frames).complete
+    surface = shot_cache.scan("surface", spec.frames)
+    assert surface.stale == (3,) and surface.valid == (1, 2, 4, 5, 6)
+    refused = sphshot("run", job, *small())
+    assert refused.returncode == 3 and "or from sim frames computed again since" in refused.stderr
+    sphshot("run", job, *small(), "--stage", "surface+", "--frames", "3", "--force", check=True)
+    for stage in cache.STAGES:
+        assert cache.scan(spec, paths, stage, spec.frames).complete, stage
