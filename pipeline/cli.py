@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import sys
@@ -296,6 +297,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("sphshot: interrupted", file=sys.stderr)
         return errors.EXIT_INTERRUPTED
+    except BrokenPipeError:    # `sphshot status JOB | head`: the reader left; nothing to say
+        with contextlib.suppress(OSError):
+            sys.stdout = open(os.devnull, "w")
+        return errors.EXIT_OK
     except OSError as err:     # a full disk, a folder gone or not writable mid-run: one line
         where = f": {err.filename}" if getattr(err, "filename", None) else ""
         print(f"sphshot: error: {err.strerror or err}{where} (nothing half-written was published)",

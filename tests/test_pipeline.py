@@ -622,3 +622,22 @@ def test_a_frame_made_from_an_upstream_frame_since_recomputed_is_stale(shot, tmp
     sphshot("run", job, *small(), "--stage", "surface+", "--frames", "3", "--force", check=True)
     for stage in cache.STAGES:
         assert cache.scan(spec, paths, stage, spec.frames).complete, stage
+
+
+def test_status_into_a_closed_pipe_says_nothing(shot, monkeypatch, capsys):
+    """`sphshot status JOB | head -1`: the reader leaves early and the next write raises
+    BrokenPipeError; that is no error (it was "sphshot: error: Broken pipe"): exit 0, nothing
+    on stderr."""
+    from pipeline.cli import main
+
+    class ClosedPipe:
+        def write(self, _text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            pass
+
+    job, _ = shot
+    monkeypatch.setattr(sys, "stdout", ClosedPipe())
+    code = main(["status", str(job), *small()])
+    assert code == 0 and capsys.readouterr().err == ""
