@@ -32,6 +32,13 @@ def allowed_cpus() -> list[int]:
         return list(range(os.cpu_count() or 1))
 
 
+def current_arch() -> str:
+    """The arch Taichi runs on now: "cpu" (x64 or arm64), "cuda", "vulkan", ..."""
+    import taichi as ti
+    arch = ti.lang.impl.current_cfg().arch
+    return "cpu" if arch in (ti.x64, ti.arm64) else arch.name
+
+
 def init_taichi(backend: str = "auto", threads: int = 0) -> str:
     """Start Taichi on `backend` (auto: CUDA, then Vulkan, then CPU); returns the arch used.
 
@@ -59,8 +66,7 @@ def init_taichi(backend: str = "auto", threads: int = 0) -> str:
         with contextlib.redirect_stdout(io.StringIO()):   # ti.init prints "Starting on arch=..."
             ti.init(arch=arch, cpu_max_num_threads=n_threads, default_fp=ti.f32, default_ip=ti.i32,
                     random_seed=0, offline_cache=True)   # log level: TI_LOG_LEVEL, above
-        got = ti.lang.impl.current_cfg().arch
-        if (name == "cpu" and got in (ti.x64, ti.arm64)) or got == arch:
+        if current_arch() == name:
             chosen = name
             break
         ti.reset()

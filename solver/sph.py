@@ -21,6 +21,7 @@ import numpy as np
 import taichi as ti
 
 from . import kernels as K
+from .backend import current_arch
 from .boundaries import collider_arrays, k_collide
 from .errors import TooLarge, Unstable
 from .neighbours import (CELL_DIV, SKIN, k_count, k_fill_i, k_gather, k_moved_beyond,
@@ -107,7 +108,7 @@ class SPHSolver:
         self.moved = ti.ndarray(ti.i32, 1)    # 1: a particle moved skin/2 from its reference position
         # neighbour lists: room for 1.5x the fill lattice's pairs within h + skin, grown on overflow
         self.nb_cap = 0
-        self.on_cpu = ti.lang.impl.current_cfg().arch in (ti.x64, ti.arm64)
+        self.on_cpu = current_arch() == "cpu"
         self._grow_neighbours(int(1.5 * 4.0 / 3.0 * math.pi * ((h + self.skin) / params.spacing) ** 3) + 8)
         self.lists_built = 0
 

@@ -11,15 +11,16 @@ Vectors: a numpy array's last axis, a Taichi ndarray's element type.
 import numpy as np
 import taichi as ti
 
+from solver.backend import current_arch
 from solver.neighbours import exclusive_scan as exclusive_scan_into
+from solver.types import I1
 
-vec3 = ti.math.vec3
-V3 = ti.types.ndarray(dtype=vec3, ndim=1)
-F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
-I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+# kernel argument types the surfacer adds to the solver's (solver/types.py)
 I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
-R8 = ti.types.ndarray(dtype=ti.types.vector(8, ti.f32), ndim=1)     # rows of 8 grid nodes
+I64 = ti.types.ndarray(dtype=ti.i64, ndim=1)
+U2 = ti.types.ndarray(dtype=ti.u8, ndim=2)
+R8 = ti.types.ndarray(dtype=ti.types.vector(8, ti.f32), ndim=1)     # rows of 8 grid nodes along z
 
 
 _NP = {ti.i32: np.int32, ti.i64: np.int64, ti.f32: np.float32, ti.u8: np.uint8}
@@ -27,13 +28,26 @@ _NP = {ti.i32: np.int32, ti.i64: np.int64, ti.f32: np.float32, ti.u8: np.uint8}
 
 def on_cpu() -> bool:
     """Whether Taichi runs on the CPU (else a GPU: CUDA, Vulkan or Metal)."""
-    from taichi.lang import impl
-    return impl.current_cfg().arch in (ti.x64, ti.arm64)
+    return current_arch() == "cpu"
 
 
 def on_cuda() -> bool:
-    from taichi.lang import impl
-    return impl.current_cfg().arch == ti.cuda
+    return current_arch() == "cuda"
+
+
+@ti.func
+def sort_run(a: ti.template(), s0, n):
+    """a[s0 : s0 + n] in increasing order, in place (insertion sort: for the short runs the
+    surfacer sorts so that its float sums add in a fixed order on every run and backend)."""
+    for k in range(1, n):
+        x = a[s0 + k]
+        b = k - 1
+        while b >= 0:
+            if a[s0 + b] <= x:
+                break
+            a[s0 + b + 1] = a[s0 + b]
+            b -= 1
+        a[s0 + b + 1] = x
 
 
 def _shape(shape) -> tuple:

@@ -22,19 +22,14 @@ vertex_normals, for any triangle mesh, is here too, in parallel and deterministi
 import numpy as np
 import taichi as ti
 
+from solver.types import F2, I1, V3
+
 from . import device as D
+from .device import I2, I3, R8, U2
 from .grid import B
 from .mc_table import EDGE_AXIS, EDGE_CORNER, table
 
 B3 = B * B * B
-F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
-I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
-I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
-I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
-F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
-U2 = ti.types.ndarray(dtype=ti.u8, ndim=2)
-V3 = ti.types.ndarray(dtype=ti.math.vec3, ndim=1)
-R8 = ti.types.ndarray(dtype=ti.types.vector(B, ti.f32), ndim=1)
 
 
 @ti.func
@@ -198,15 +193,7 @@ def k_gather_normals(start: I1, count: I1, incident: I1, normal: V3, out: V3):
     same as one thread adding face after face."""
     for v in out:
         s0, n = start[v], count[v]
-        for a in range(1, n):
-            x = incident[s0 + a]
-            b = a - 1
-            while b >= 0:
-                if incident[s0 + b] <= x:
-                    break
-                incident[s0 + b + 1] = incident[s0 + b]
-                b -= 1
-            incident[s0 + b + 1] = x
+        D.sort_run(incident, s0, n)
         acc = ti.math.vec3(0.0)
         for a in range(n):
             acc += normal[incident[s0 + a]]

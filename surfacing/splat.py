@@ -32,8 +32,10 @@ import numpy as np
 import taichi as ti
 
 from solver import kernels as K
+from solver.types import F1, I1, V3, ivec3, vec3
 
 from . import device as D
+from .device import I3, I64, R8
 from .grid import B, GridTooLarge
 
 B2, B3 = B * B, B * B * B
@@ -42,15 +44,7 @@ MAX_LOOKUP = 1 << 28           # block-index entries (1 GiB of int32); beyond th
 # precision (it is rounded to 2^-40 after being computed in float32), the sum is exact, and the
 # range is 8e6 (color about 1 in the bulk; momentum = color x speed in m/s)
 FIXED = float(2 ** 40)
-I64 = ti.types.ndarray(dtype=ti.i64, ndim=1)
 
-vec3 = ti.math.vec3
-V3 = ti.types.ndarray(dtype=vec3, ndim=1)
-F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
-I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
-I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
-ivec3 = ti.math.ivec3
-R8 = ti.types.ndarray(dtype=ti.types.vector(B, ti.f32), ndim=1)     # rows of 8 nodes along z
 
 
 @ti.func
@@ -252,16 +246,7 @@ def k_sort_runs(start: I1, count: I1, order: I1):
     """Each cube's run of `order` in increasing particle index (insertion sort: a run is a
     cube's few dozen particles), so that the splat adds in the same order on every run."""
     for k in count:
-        s0, n = start[k], count[k]
-        for a in range(1, n):
-            x = order[s0 + a]
-            b = a - 1
-            while b >= 0:
-                if order[s0 + b] <= x:
-                    break
-                order[s0 + b + 1] = order[s0 + b]
-                b -= 1
-            order[s0 + b + 1] = x
+        D.sort_run(order, start[k], count[k])
 
 
 @ti.kernel
@@ -306,7 +291,7 @@ def sort_by_cube(positions, origin: np.ndarray, top: np.ndarray, support: float)
     per_phase = math.prod(half)
     key = D.empty(ti.i32, n)
     count = D.zeros(ti.i32, 8 * per_phase)
-    k_cube_keys(positions, vec3(*map(float, origin)), 1.0 / edge, ti.math.ivec3(*dims), ti.math.ivec3(*half),
+    k_cube_keys(positions, vec3(*map(float, origin)), 1.0 / edge, ivec3(*dims), ivec3(*half),
                 key, count)
     start, _ = D.exclusive_scan(count, 8 * per_phase)
     order = D.empty(ti.i32, n)
