@@ -31,6 +31,25 @@ BACKEND, SCALE = "cuda", 1.0          # --dry: cpu, particle counts / 200 (to ch
 ROWS: list[tuple[str, str, str]] = []          # (what, figure, target)
 
 
+def kernel_ms() -> dict[str, float]:
+    """{kernel: total ms} from Taichi's kernel profiler (ti.init(kernel_profiler=True)), the
+    offloaded tasks of one kernel added up; for the profiled children below."""
+    import contextlib
+    import io
+    import re
+
+    import taichi as ti
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        ti.profiler.print_kernel_profiler_info("count")
+    out: dict[str, float] = {}
+    for m in re.finditer(r"\[\s*[\d.]+%\s+[\d.]+ s\s+(\d+)x \|\s*[\d.]+\s+([\d.]+)\s+[\d.]+ ms\] (\S+)",
+                         buf.getvalue()):
+        name = m.group(3).split("_c")[0]
+        out[name] = out.get(name, 0.0) + int(m.group(1)) * float(m.group(2))
+    return out
+
+
 def row(what: str, figure: str, target: str = "") -> None:
     ROWS.append((what, figure, target))
     print(f"ROW | {what} | {figure} | {target}", flush=True)
@@ -103,14 +122,8 @@ ti.sync(); ti.profiler.clear_kernel_profiler_info()
 for _ in range(20):
     s.step()
 ti.sync()
-import io, contextlib, re
-buf = io.StringIO()
-with contextlib.redirect_stdout(buf):
-    ti.profiler.print_kernel_profiler_info("count")
-recs = {}
-for m in re.finditer(r"\[\s*[\d.]+%\s+[\d.]+ s\s+(\d+)x \|\s*[\d.]+\s+([\d.]+)\s+[\d.]+ ms\] (\S+)", buf.getvalue()):
-    name = m.group(3).split("_c")[0]
-    recs[name] = recs.get(name, 0.0) + int(m.group(1)) * float(m.group(2))
+from bench.gpu import kernel_ms
+recs = kernel_ms()
 total = sum(recs.values())
 for name, ms in sorted(recs.items(), key=lambda kv: -kv[1])[:8]:
     print(f"PROFILE {name} {ms / 20:.3f} ms/step {100 * ms / total:.0f}%")
@@ -154,7 +167,7 @@ for n in (int(500_000 * float(sys.argv[3])), int(4_000_000 * float(sys.argv[3]))
 
 
 SURFACE_PROFILE = r"""
-import sys, io, contextlib, re, numpy as np, taichi as ti
+import sys, numpy as np, taichi as ti
 sys.path[0] = sys.argv[1]
 ti.init(getattr(ti, sys.argv[2]), kernel_profiler=True, log_level=ti.WARN)
 import solver.backend as sb
@@ -168,13 +181,8 @@ vel = rng.normal(size=P.shape).astype(np.float32); vol = np.full(len(P), 0.02 **
 marching_cubes(color_field(P[:5000], vel[:5000], vol[:5000], 0.0075, 0.04, 0.6), 0.6)
 ti.sync(); ti.profiler.clear_kernel_profiler_info()
 marching_cubes(color_field(P, vel, vol, 0.0075, 0.04, 0.6), 0.6); ti.sync()
-buf = io.StringIO()
-with contextlib.redirect_stdout(buf):
-    ti.profiler.print_kernel_profiler_info("count")
-recs = {}
-for m in re.finditer(r"\[\s*[\d.]+%\s+[\d.]+ s\s+(\d+)x \|\s*[\d.]+\s+([\d.]+)\s+[\d.]+ ms\] (\S+)", buf.getvalue()):
-    name = m.group(3).split("_c")[0]
-    recs[name] = recs.get(name, 0.0) + int(m.group(1)) * float(m.group(2))
+from bench.gpu import kernel_ms
+recs = kernel_ms()
 for name, ms in sorted(recs.items(), key=lambda kv: -kv[1])[:8]:
     print(f"SPROFILE {name} {ms:.1f} ms")
 print(f"SPROFILE total {sum(recs.values()):.1f} ms in kernels (with velocities)")
