@@ -1,6 +1,8 @@
 """Shared fixtures: small copies of the example jobs, run in a temporary folder."""
 from __future__ import annotations
 
+import contextlib
+
 import os
 import subprocess
 import sys
@@ -75,3 +77,18 @@ def spec_of(job, args):
     """The ShotSpec a `sphshot` call with these `--set` arguments sees."""
     from pipeline.spec import load_spec
     return load_spec(job, [s for s in args if s != "--set"])
+
+
+@contextlib.contextmanager
+def mounted_tmpfs(folder: Path, options: str):
+    """A tmpfs mounted at `folder` (created) with mount options `options` for the block; the
+    test is skipped, with the reason, where this machine cannot mount one."""
+    folder.mkdir(parents=True, exist_ok=True)
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)],
+                             capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip() or mounted.returncode}")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], check=False)

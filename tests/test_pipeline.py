@@ -12,7 +12,7 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import ROOT, small, spec_of, sphshot
+from conftest import ROOT, mounted_tmpfs, small, spec_of, sphshot
 from pipeline import cache
 
 pytestmark = pytest.mark.slow
@@ -578,13 +578,7 @@ def test_a_really_full_disk_is_one_line_and_leaves_only_whole_frames(job_copy, t
     """The same on a real 3 MB tmpfs (skipped where this machine cannot mount one): the small
     shot needs about 6.6 MB, so a write fails part-way. One line, exit 1, no traceback, no
     temporary left, and every file on disk is a whole, stamped frame."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(disk)],
-                             capture_output=True, text=True)
-    if mounted.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip() or mounted.returncode}")
-    try:
+    with mounted_tmpfs(tmp_path / "disk", "size=3m") as disk:
         job = job_copy()
         args = small(f'shot.output="{disk}"')
         proc = sphshot("run", job, *args)
@@ -597,8 +591,6 @@ def test_a_really_full_disk_is_one_line_and_leaves_only_whole_frames(job_copy, t
         for stage in cache.STAGES:
             sc = cache.ShotCache(spec, paths).scan(stage, spec.frames, verify=True)
             assert not sc.corrupt and not sc.stale, (stage, sc)
-    finally:
-        subprocess.run(["umount", str(disk)], check=False)
 
 
 def test_a_frame_made_from_an_upstream_frame_since_recomputed_is_stale(shot, tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from conftest import mounted_tmpfs
 from pipeline.cli import main
 from pipeline.spec import load_spec
 
@@ -247,15 +248,7 @@ def test_an_output_folder_that_cannot_be_written_is_one_line(tmp_path, capsys):
     A read-only filesystem (a tmpfs mounted read-only; skipped where this machine cannot mount
     one -- as root, permission bits alone do not stop a write) is one line, exit 2, before
     anything runs."""
-    import subprocess
-
-    ro = tmp_path / "ro"
-    ro.mkdir()
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(ro)],
-                             capture_output=True, text=True)
-    if mounted.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.strip() or mounted.returncode}")
-    try:
+    with mounted_tmpfs(tmp_path / "ro", "ro,size=1m") as ro:
         job = tmp_path / "job.toml"
         job.write_text(GOOD.replace('output = "out"', f'output = "{ro}/shots"'))
         for command in ("validate", "run"):
@@ -263,5 +256,3 @@ def test_an_output_folder_that_cannot_be_written_is_one_line(tmp_path, capsys):
             lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
             assert code == 2 and len(lines) == 1, lines
             assert f"shot.output: cannot write in {ro} (no permission, or a read-only filesystem)" in lines[0]
-    finally:
-        subprocess.run(["umount", str(ro)], check=False)
