@@ -74,8 +74,11 @@ def child(args) -> None:
     init = time.perf_counter() - t0
     steps0, time0 = s.steps, s.time
     t1 = time.perf_counter()
-    while s.time < args.stop_at:
-        s.step(args.stop_at, timed=args.phases)
+    if args.phases:                   # synchronised around every phase: one step at a time
+        while s.time < args.stop_at:
+            s.step(args.stop_at, timed=True)
+    else:                             # as the sim stage steps (WCSPH on a GPU: batches of gated steps)
+        s.advance_to(args.stop_at)
     ti.sync()
     wall = time.perf_counter() - t1
     steps = s.steps - steps0

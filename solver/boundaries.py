@@ -213,47 +213,53 @@ def collider_arrays(params: SolverParams):
     return tuple(out)
 
 
-@ti.kernel
-def k_collide(position: V3, velocity: V3, box: Box, ctype: I1, cprm: F2, sdf: F1):
-    """Keep particle centres `box.keep` outside every collider and inside the domain box:
-    project them to that distance, reflect the normal velocity with restitution and apply
-    Coulomb friction to the tangential part."""
+@ti.func
+def collide_one(x0, v0, box: ti.template(), ctype: ti.template(), cprm: ti.template(), sdf: ti.template()):
+    """Keep a particle centre `box.keep` outside every collider and inside the domain box:
+    project it to that distance, reflect the normal velocity with restitution and apply
+    Coulomb friction to the tangential part. Returns the new (x, v)."""
     keep = box.keep
-    for i in position:
-        x = position[i]
-        v = velocity[i]
-        for k in range(ctype.shape[0]):
-            phi, n = collider_sdf(ctype[k], cprm, sdf, k, x)
-            if phi < keep:
-                x += (keep - phi) * n
-                vn = v.dot(n)
-                if vn < 0.0:
-                    vt = v - vn * n
-                    vtn = vt.norm()
-                    scale = 0.0
-                    if vtn > 1e-12:
-                        scale = ti.max(0.0, 1.0 - cprm[k, C_FRIC] * (1.0 + cprm[k, C_REST]) * ti.abs(vn) / vtn)
-                    v = vt * scale - cprm[k, C_REST] * vn * n
-        # the domain box, the same way
-        for ax in ti.static(range(3)):
-            lo = box.lo[ax] + keep
-            hi = box.hi[ax] - keep
-            hit = 0.0
-            if x[ax] < lo:
-                x[ax] = lo
-                hit = -1.0
-            elif x[ax] > hi:
-                x[ax] = hi
-                hit = 1.0
-            if hit != 0.0 and v[ax] * hit > 0.0:
-                vn = v[ax]
-                vt = v
-                vt[ax] = 0.0
+    x, v = x0, v0
+    for k in range(ctype.shape[0]):
+        phi, n = collider_sdf(ctype[k], cprm, sdf, k, x)
+        if phi < keep:
+            x += (keep - phi) * n
+            vn = v.dot(n)
+            if vn < 0.0:
+                vt = v - vn * n
                 vtn = vt.norm()
                 scale = 0.0
                 if vtn > 1e-12:
-                    scale = ti.max(0.0, 1.0 - box.friction * (1.0 + box.restitution) * ti.abs(vn) / vtn)
-                v = vt * scale
-                v[ax] = -box.restitution * vn
+                    scale = ti.max(0.0, 1.0 - cprm[k, C_FRIC] * (1.0 + cprm[k, C_REST]) * ti.abs(vn) / vtn)
+                v = vt * scale - cprm[k, C_REST] * vn * n
+    # the domain box, the same way
+    for ax in ti.static(range(3)):
+        lo = box.lo[ax] + keep
+        hi = box.hi[ax] - keep
+        hit = 0.0
+        if x[ax] < lo:
+            x[ax] = lo
+            hit = -1.0
+        elif x[ax] > hi:
+            x[ax] = hi
+            hit = 1.0
+        if hit != 0.0 and v[ax] * hit > 0.0:
+            vn = v[ax]
+            vt = v
+            vt[ax] = 0.0
+            vtn = vt.norm()
+            scale = 0.0
+            if vtn > 1e-12:
+                scale = ti.max(0.0, 1.0 - box.friction * (1.0 + box.restitution) * ti.abs(vn) / vtn)
+            v = vt * scale
+            v[ax] = -box.restitution * vn
+    return x, v
+
+
+@ti.kernel
+def k_collide(position: V3, velocity: V3, box: Box, ctype: I1, cprm: F2, sdf: F1):
+    """collide_one for every particle."""
+    for i in position:
+        x, v = collide_one(position[i], velocity[i], box, ctype, cprm, sdf)
         position[i] = x
         velocity[i] = v

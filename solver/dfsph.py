@@ -404,6 +404,9 @@ class DFSPHSolver(SPHSolver):
         run("collide", self.collide)
         return dt
 
+    def advance_some(self, t_target: float) -> None:
+        self.step(t_target)       # DFSPH decides on the host: one step at a time
+
     # --------------------------------------------------------------------------- read out
     def refresh_fields(self) -> None:
         """Density, and the last density solve's pressure, at the current positions."""

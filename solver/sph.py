@@ -22,13 +22,14 @@ import taichi as ti
 
 from . import kernels as K
 from .backend import current_arch
+from . import clock
 from .boundaries import collider_arrays, k_collide
 from .errors import TooLarge, Unstable
 from .neighbours import (CELL_DIV, SKIN, k_count, k_fill_i, k_gather, k_moved_beyond,
                          k_neighbours, k_scatter, exclusive_scan)
 from .params import F_ETA, F_MU, F_RHO0, F_SIGMA, SolverParams
 from .types import Box, Consts, ivec2, ivec3, vec3
-from .wcsph import k_density, k_forces, k_integrate, k_synced_velocity
+from .wcsph import k_advance, k_density, k_forces, k_synced_velocity, k_time_step
 
 # A step shorter than this fraction of the acoustic CFL step means the state has blown up. The
 # three example shots at their own resolution, all frames, never went below 0.75 of it.
@@ -69,6 +70,7 @@ class SPHSolver:
 
     KEEP = 0.5      # particle centres stay this many radii from any wall or collider
     INTERLEAVED_LISTS: bool | None = None     # None: by the backend (see _grow_neighbours)
+    BATCH: int | None = None                  # gated steps per read of the controller; None: by the backend
 
     def __init__(self, params: SolverParams, state: dict[str, np.ndarray], time_s: float = 0.0,
                  step: int = 0, dt_prev: float = 0.0):
@@ -106,6 +108,12 @@ class SPHSolver:
         self._scan_buffers: dict[int, object] = {}
         self.stats = ti.ndarray(ti.f32, 3)    # max speed, max acceleration, list overflow
         self.moved = ti.ndarray(ti.i32, 1)    # 1: a particle moved skin/2 from its reference position
+        # the step's controller on the device (clock.py), and a gate that stays open
+        self.ctl, self.open_gate = ti.ndarray(ti.f64, clock.SIZE), ti.ndarray(ti.f64, clock.SIZE)
+        self.open_gate.fill(1.0)
+        self._moved: bool | None = None       # the last batch's MOVED, while still current
+        self.batch = 1                        # gated steps launched between reads of the controller
+        self._built_at = self.steps
         # neighbour lists: room for 1.5x the fill lattice's pairs within h + skin, grown on overflow
         self.nb_cap = 0
         self.on_cpu = current_arch() == "cpu"
@@ -139,6 +147,9 @@ class SPHSolver:
         self.vmax = 0.0
         self.amax = 0.0
         self.tension = bool((params.fluid_table[:, F_SIGMA] > 0).any())   # compile the color field in?
+        ctl = np.zeros(clock.SIZE)
+        ctl[[clock.TIME, clock.DT_PREV, clock.STEPS]] = self.time, self.dt_prev, self.steps
+        self.ctl.from_numpy(ctl)
 
     # ----------------------------------------------------------------------------- phases
     def build_lists(self) -> None:
@@ -164,14 +175,24 @@ class SPHSolver:
                 break
             self._grow_neighbours(int(1.25 * most) + 8)
         self.lists_built += 1
+        # launch about as many gated steps at a time as the lists lasted (1 on the CPU, where
+        # a launch waits for its kernel anyway and reading the controller costs nothing)
+        if self.BATCH is not None:
+            self.batch = self.BATCH
+        elif not self.on_cpu:
+            self.batch = min(max(self.steps - self._built_at, 1), 32)
+        self._built_at = self.steps
 
     def update_lists(self) -> None:
         """Rebuild the neighbour lists if a particle moved skin/2 from its reference position
         (two such particles may then be within h but not listed)."""
         if self._lists_valid:
-            self.moved.fill(0)
-            k_moved_beyond(self.position, self.ref, 0.5 * self.skin, self.moved)
-            if int(self.moved.to_numpy()[0]) == 0:
+            moved, self._moved = self._moved, None
+            if moved is None:         # not known from the last batch of steps: look
+                self.moved.fill(0)
+                k_moved_beyond(self.position, self.ref, 0.5 * self.skin, self.moved)
+                moved = int(self.moved.to_numpy()[0]) != 0
+            if not moved:
                 return
         if not self._lists_from_ref:
             self.ref.copy_from(self.position)
@@ -201,44 +222,38 @@ class SPHSolver:
         self.near = ti.ndarray(ti.i32, max(self.n * cap, 1))      # within h now (a subset)
         self.near_count = ti.ndarray(ti.i32, self.n)
 
-    def compute_density(self) -> None:
+    def compute_density(self, gate=None) -> None:
         k_density(self.position, self.fluid, self.number_density, self.density, self.pressure,
                   self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
                   self.consts, self.box, self.ftab, self.ghost_t, self.ghost_g,
-                  self.ctype, self.cprm, self.sdf, self.params.density_kind)
+                  self.ctype, self.cprm, self.sdf, self.open_gate if gate is None else gate,
+                  self.params.density_kind)
 
     def compute_forces(self) -> None:
-        """Accelerations and the step's maxima."""
-        self.stats.fill(0.0)
+        """Accelerations, and the step's largest speed and acceleration in stats."""
         k_forces(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
                  self.density, self.pressure, self.near, self.near_count, self.lay,
                  self.consts, self.box, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom,
-                 self.ctype, self.cprm, self.sdf, self.stats, self.params.pressure_kind, self.tension)
-        s = self.stats.to_numpy()
-        self.vmax, self.amax = float(s[0]), float(s[1])
+                 self.ctype, self.cprm, self.sdf, self.stats, self.ctl, self.params.pressure_kind, self.tension)
 
-    def stable_dt(self) -> float:
-        """CFL (sound + flow speed), force and viscous limits, capped by max_dt.
-
-        Raises Unstable when the step falls below MIN_DT_FRACTION of the acoustic CFL step: the
-        accelerations have blown up, and stepping on either crawls (every particle pushed into
-        one corner ran for over ten minutes on one frame) or flings particles apart."""
+    def time_step_on_device(self) -> None:
+        """CFL (sound + flow speed), force and viscous limits, capped by max_dt, landed on the
+        target time. A step under MIN_DT_FRACTION of the acoustic CFL step means the
+        accelerations have blown up (stepping on either crawls -- every particle pushed into one
+        corner ran for over ten minutes on one frame -- or flings particles apart): the
+        controller says UNSTABLE and pull_clock raises."""
         params, hs = self.params, 0.5 * self.h
         acoustic = params.cfl * hs / params.speed_of_sound
-        dt = params.cfl * hs / (params.speed_of_sound + self.vmax)
-        if self.amax > 0:
-            dt = min(dt, 0.25 * math.sqrt(hs / self.amax))
-        if not dt >= MIN_DT_FRACTION * acoustic:
-            raise Unstable(f"the time step fell to {dt:.3g} s (max acceleration {self.amax:.3g} m/s^2, "
-                           f"max speed {self.vmax:.3g} m/s)")
-        return min(dt, self.dt_visc, params.max_dt)
+        k_time_step(self.stats, self.ctl, params.cfl * hs, hs, params.speed_of_sound, MIN_DT_FRACTION * acoustic,
+                    min(self.dt_visc, params.max_dt))
 
-    def integrate(self, dt: float) -> None:
-        k_integrate(self.position, self.velocity, self.acceleration, 0.5 * (self.dt_prev + dt), dt)
-        self.advance_clock(dt)
+    def advance(self) -> None:
+        k_advance(self.position, self.velocity, self.acceleration, self.ref, 0.5 * self.skin,
+                  self.box, self.ctype, self.cprm, self.sdf, self.ctl)
 
     def advance_clock(self, dt: float) -> None:
-        """The step of length dt is done: time, step count and dt_{n-1/2} move on."""
+        """The step of length dt is done: time, step count and dt_{n-1/2} move on (the host's
+        clock, for solvers that decide on the host)."""
         self.dt_prev = dt
         self.time += dt
         self.steps += 1
@@ -247,19 +262,47 @@ class SPHSolver:
         k_collide(self.position, self.velocity, self.box, self.ctype, self.cprm, self.sdf)
 
     # ------------------------------------------------------------------------------- step
+    def gated_step(self, run) -> None:
+        """One WCSPH step, every launch gated on the controller (clock.py): nothing here reads
+        back to the host."""
+        run("density", self.compute_density, self.ctl)
+        run("forces", self.compute_forces)
+        run("time step", self.time_step_on_device)
+        run("integrate", self.advance)
+
     def step(self, t_target: float | None = None, timed: bool = False) -> float:
         """One substep; never steps past t_target. Returns dt."""
         run = self.phase_runner(timed)
         run("neighbours", self.update_lists)
-        run("density", self.compute_density)
-        run("forces", self.compute_forces)
-        dt = self.time_step(t_target)
-        run("integrate", self.integrate, dt)
-        run("collide", self.collide)
-        return dt
+        clock.k_arm(self.ctl, clock.NEVER if t_target is None else t_target)
+        self.gated_step(run)
+        return self.pull_clock()
+
+    def advance_some(self, t_target: float) -> None:
+        """`batch` gated steps towards t_target, then one read of the controller."""
+        self.update_lists()
+        clock.k_arm(self.ctl, t_target)
+        run = self.phase_runner(False)
+        for _ in range(self.batch):
+            self.gated_step(run)
+        self.pull_clock()
+
+    def pull_clock(self) -> float:
+        """Read the controller: time, steps, the last dt and whether the lists must be rebuilt.
+        Returns the last dt; raises Unstable if the step blew up."""
+        c = self.ctl.to_numpy()
+        self.time, self.dt_prev, self.steps = float(c[clock.TIME]), float(c[clock.DT_PREV]), int(c[clock.STEPS])
+        self.vmax, self.amax = float(c[clock.VMAX]), float(c[clock.AMAX])
+        self._moved = bool(c[clock.MOVED] > 0.5)
+        if c[clock.UNSTABLE] > 0.5:
+            raise Unstable(f"the time step fell to {c[clock.DT]:.3g} s (max acceleration {self.amax:.3g} m/s^2, "
+                           f"max speed {self.vmax:.3g} m/s)")
+        return self.dt_prev
 
     def time_step(self, t_target: float | None) -> float:
-        """The stable step, shortened to land on t_target without a sliver step."""
+        """The stable step (self.stable_dt, on the host), shortened to land on t_target without
+        a sliver step: for solvers that decide on the host (clock.land_on_target is the same
+        rule on the device)."""
         dt = self.stable_dt()
         if t_target is not None:
             remaining = t_target - self.time
@@ -285,7 +328,7 @@ class SPHSolver:
     def advance_to(self, t_target: float, should_stop=None) -> bool:
         """Step until t_target. Returns False if should_stop() asked to stop early."""
         while self.time < t_target - 1e-9:
-            self.step(t_target)
+            self.advance_some(t_target)
             if should_stop is not None and should_stop():
                 return self.time >= t_target - 1e-9
         self.time = max(self.time, t_target) if abs(self.time - t_target) < 1e-9 else self.time

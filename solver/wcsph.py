@@ -10,13 +10,18 @@ arrays and constants come in as arguments.
                     + Morris et al. 1997's viscosity in Pa s (see `morris`)
                     - sigma lap c_i n_i / |n_i| / rho_i                            (tension)
                     + g + the walls' pressure (boundary samples, kernels.ghost_tables)
-  integrate   leapfrog: v_{n+1/2} = v_{n-1/2} + a_n (dt_{n-1/2} + dt_{n+1/2}) / 2,
-              x_{n+1} = x_n + v_{n+1/2} dt_{n+1/2}
+  time step   CFL on sound + flow speed, force limit; on the device (clock.py)
+  advance     leapfrog: v_{n+1/2} = v_{n-1/2} + a_n (dt_{n-1/2} + dt_{n+1/2}) / 2,
+              x_{n+1} = x_n + v_{n+1/2} dt_{n+1/2}; walls and colliders
+Every kernel of a step is gated on the controller array (clock.py), so that a GPU can run
+several steps without reading anything back.
 """
 import taichi as ti
 
 from . import kernels as K
-from .boundaries import boundary_sums, collider_sdf, domain_walls, hydrostatic_wall, nearest_walls, table3
+from .boundaries import (boundary_sums, collide_one, collider_sdf, domain_walls, hydrostatic_wall, nearest_walls,
+                         table3)
+from .clock import AMAX, DT, GO, KICK, MOVED, UNSTABLE, VMAX, D1, end_step, gate_open, land_on_target
 from .params import F_B, F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA
 from .types import F1, F2, F4, I1, V3, Box, Consts, ivec2, raise_max, vec3
 
@@ -43,105 +48,141 @@ def color_tension(sigma: ti.f32, n, lap: ti.f32, rho: ti.f32, h: ti.f32, thresho
 def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure: F1,
               verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
               c: Consts, box: Box, ftab: F2, ghost_t: F4, ghost_g: F4,
-              ctype: I1, cprm: F2, sdf: F1, dkern: ti.template()):
+              ctype: I1, cprm: F2, sdf: F1, ctl: D1, dkern: ti.template()):
     """Density and pressure from the Verlet list; also copies the entries now within h (and not
     coincident) into the exact list `near` that the force pass reads, without branching."""
     h = c.h
     for i in position:
-        xi = position[i]
-        s = K.w_r2(dkern, 0.0, h)                 # the particle itself
-        base = i * lay.x
-        k = 0
-        for m in range(verlet_count[i]):
-            j = verlet[base + m * lay.y]
-            r2 = (xi - position[j]).norm_sqr()
-            s += K.w_r2(dkern, r2, h)
-            near[base + k * lay.y] = j
-            k += ti.select((r2 < h * h) & (r2 > 1e-18), 1, 0)
-        near_count[i] = k
-        # walls: the domain's six planes and the colliders, as boundary samples on the fill
-        # lattice. They take the particle's own compression, so the share f of the kernel they
-        # cover scales the fluid's sum up: delta = sum_fluid / (1 - f). Exact at rest and
-        # under uniform (e.g. hydrostatic) compression; f is capped for particles in corners.
-        wall, _g = boundary_sums(xi, c, box, ghost_t, ghost_g, ctype, cprm, sdf)   # colliders: planar
-        s = s / ti.max(1.0 - wall / c.lattice, 0.1)
-        f = fluid[i]
-        r = ftab[f, F_MASS] * s
-        number_density[i] = s
-        density[i] = r
-        pressure[i] = ti.max(ftab[f, F_B] * ((r / ftab[f, F_RHO0]) ** c.gamma - 1.0), 0.0)
+        if gate_open(ctl):
+            xi = position[i]
+            s = K.w_r2(dkern, 0.0, h)                 # the particle itself
+            base = i * lay.x
+            k = 0
+            for m in range(verlet_count[i]):
+                j = verlet[base + m * lay.y]
+                r2 = (xi - position[j]).norm_sqr()
+                s += K.w_r2(dkern, r2, h)
+                near[base + k * lay.y] = j
+                k += ti.select((r2 < h * h) & (r2 > 1e-18), 1, 0)
+            near_count[i] = k
+            # walls: the domain's six planes and the colliders, as boundary samples on the fill
+            # lattice. They take the particle's own compression, so the share f of the kernel they
+            # cover scales the fluid's sum up: delta = sum_fluid / (1 - f). Exact at rest and
+            # under uniform (e.g. hydrostatic) compression; f is capped for particles in corners.
+            wall, _g = boundary_sums(xi, c, box, ghost_t, ghost_g, ctype, cprm, sdf)   # colliders: planar
+            s = s / ti.max(1.0 - wall / c.lattice, 0.1)
+            f = fluid[i]
+            r = ftab[f, F_MASS] * s
+            number_density[i] = s
+            density[i] = r
+            pressure[i] = ti.max(ftab[f, F_B] * ((r / ftab[f, F_RHO0]) ** c.gamma - 1.0), 0.0)
 
 
 @ti.kernel
 def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1,
              density: F1, pressure: F1, near: I1, near_count: I1, lay: ivec2,
              c: Consts, box: Box, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2,
-             ctype: I1, cprm: F2, sdf: F1, stats: F1, pkern: ti.template(), tension: ti.template()):
-    """Accelerations (pressure, viscosity, surface tension, gravity, walls); raises stats[0] to
-    the largest speed and stats[1] to the largest acceleration."""
+             ctype: I1, cprm: F2, sdf: F1, stats: F1, ctl: D1, pkern: ti.template(),
+             tension: ti.template()):
+    """Accelerations (pressure, viscosity, surface tension, gravity, walls); stats[0] and
+    stats[1] become the largest speed and the largest acceleration."""
     h = c.h
+    if gate_open(ctl):
+        stats[0] = 0.0
+        stats[1] = 0.0
     for i in position:
-        xi, vi = position[i], velocity[i]
-        fi = fluid[i]
-        mi = ftab[fi, F_MASS]
-        di = number_density[i]
-        pi_ = pressure[i] / (di * di)
-        a_p = vec3(0.0)
-        a_v = vec3(0.0)
-        a_eta = vec3(0.0)
-        n = vec3(0.0)
-        lap = K.lap_poly6(0.0, h) / di      # color field includes the particle itself
-        base = i * lay.x
-        for m in range(near_count[i]):        # the pairs within h (see k_density)
-            j = near[base + m * lay.y]
-            rv = xi - position[j]
-            r = ti.sqrt(rv.norm_sqr())
-            dj = number_density[j]
-            a_p -= (pi_ + pressure[j] / (dj * dj)) * K.grad_w(pkern, rv, r, h)
-            mu = 0.5 * (ftab[fi, F_MU] + ftab[fluid[j], F_MU])
-            a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
-            a_eta += morris(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], dj, rv, r, h, vi - velocity[j], pkern)
+        if gate_open(ctl):
+            xi, vi = position[i], velocity[i]
+            fi = fluid[i]
+            mi = ftab[fi, F_MASS]
+            di = number_density[i]
+            pi_ = pressure[i] / (di * di)
+            a_p = vec3(0.0)
+            a_v = vec3(0.0)
+            a_eta = vec3(0.0)
+            n = vec3(0.0)
+            lap = K.lap_poly6(0.0, h) / di      # color field includes the particle itself
+            base = i * lay.x
+            for m in range(near_count[i]):        # the pairs within h (see k_density)
+                j = near[base + m * lay.y]
+                rv = xi - position[j]
+                r = ti.sqrt(rv.norm_sqr())
+                dj = number_density[j]
+                a_p -= (pi_ + pressure[j] / (dj * dj)) * K.grad_w(pkern, rv, r, h)
+                mu = 0.5 * (ftab[fi, F_MU] + ftab[fluid[j], F_MU])
+                a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
+                a_eta += morris(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], dj, rv, r, h, vi - velocity[j], pkern)
+                if ti.static(tension):
+                    n += K.grad_w(K.POLY6, rv, r, h) / dj
+                    lap += K.lap_poly6(r, h) / dj
+            a = (c.grad_scale * a_p + a_v + a_eta / di) / mi + c.gravity
+            # walls push with the particle's own pressure term only, p_i/delta_i^2 (Akinci et al.
+            # 2012): boundary samples are fixed and carry no energy of their own, so this is the
+            # energy-consistent force. Mirroring the pressure (2 p_i/delta_i^2) pumps energy into
+            # fluid resting on a wall.
+            wall = c.grad_scale * pi_ / mi * (di / c.lattice)   # samples are as compressed as the particle
+            _d, wg = domain_walls(xi, box.lo, box.hi, h, ghost_t, ghost_g)
+            a += wall * wg
+            # the samples' hydrostatic pressure differences: -rho_i/(m_i delta_i^2) sum_b dp_b grad W
+            hyd = vec3(0.0)
+            da, ds = nearest_walls(xi, box.lo, box.hi, h)
+            for ax in ti.static(range(3)):
+                if ds[ax] != 0.0:
+                    e = vec3(0.0)
+                    e[ax] = ds[ax]
+                    hyd += hydrostatic_wall(da[ax], e, c.gravity, ghost_mom, h)
+            for k in range(ctype.shape[0]):
+                phi, nk = collider_sdf(ctype[k], cprm, sdf, k, xi)
+                if phi < h:
+                    a += wall * table3(ghost_g, 0, ti.max(phi, 0.0), 0.0, 0.0, h) * nk
+                    hyd += hydrostatic_wall(ti.max(phi, 0.0), nk, c.gravity, ghost_mom, h)
+            a -= c.grad_scale * density[i] / (mi * di * di) * (di / c.lattice) * hyd
             if ti.static(tension):
-                n += K.grad_w(K.POLY6, rv, r, h) / dj
-                lap += K.lap_poly6(r, h) / dj
-        a = (c.grad_scale * a_p + a_v + a_eta / di) / mi + c.gravity
-        # walls push with the particle's own pressure term only, p_i/delta_i^2 (Akinci et al.
-        # 2012): boundary samples are fixed and carry no energy of their own, so this is the
-        # energy-consistent force. Mirroring the pressure (2 p_i/delta_i^2) pumps energy into
-        # fluid resting on a wall.
-        wall = c.grad_scale * pi_ / mi * (di / c.lattice)   # samples are as compressed as the particle
-        _d, wg = domain_walls(xi, box.lo, box.hi, h, ghost_t, ghost_g)
-        a += wall * wg
-        # the samples' hydrostatic pressure differences: -rho_i/(m_i delta_i^2) sum_b dp_b grad W
-        hyd = vec3(0.0)
-        da, ds = nearest_walls(xi, box.lo, box.hi, h)
-        for ax in ti.static(range(3)):
-            if ds[ax] != 0.0:
-                e = vec3(0.0)
-                e[ax] = ds[ax]
-                hyd += hydrostatic_wall(da[ax], e, c.gravity, ghost_mom, h)
-        for k in range(ctype.shape[0]):
-            phi, nk = collider_sdf(ctype[k], cprm, sdf, k, xi)
-            if phi < h:
-                a += wall * table3(ghost_g, 0, ti.max(phi, 0.0), 0.0, 0.0, h) * nk
-                hyd += hydrostatic_wall(ti.max(phi, 0.0), nk, c.gravity, ghost_mom, h)
-        a -= c.grad_scale * density[i] / (mi * di * di) * (di / c.lattice) * hyd
-        if ti.static(tension):
-            a += color_tension(ftab[fi, F_SIGMA], n, lap, density[i], h, c.threshold)
-        acceleration[i] = a
-        vn, an = vi.norm(), a.norm()
-        raise_max(stats, 0, vn)
-        raise_max(stats, 1, an)
+                a += color_tension(ftab[fi, F_SIGMA], n, lap, density[i], h, c.threshold)
+            acceleration[i] = a
+            vn, an = vi.norm(), a.norm()
+            raise_max(stats, 0, vn)
+            raise_max(stats, 1, an)
 
 
 @ti.kernel
-def k_integrate(position: V3, velocity: V3, acceleration: V3, kick: ti.f32, dt: ti.f32):
-    """Leapfrog: kick the half-step velocity by `kick` = (dt_{n-1/2} + dt_{n+1/2}) / 2 of the
-    acceleration, then drift the position by dt."""
+def k_time_step(stats: F1, ctl: D1, cfl_hs: ti.f64, hs: ti.f64, sound: ti.f64, min_dt: ti.f64, cap: ti.f64):
+    """The step length: CFL on sound + flow speed (cfl_hs = cfl h/2), a quarter of
+    sqrt(h/2 / max acceleration), capped; landed on the target time (clock.land_on_target).
+    Under min_dt the accelerations have blown up: UNSTABLE, and the gate closes."""
+    if gate_open(ctl):
+        vmax = ti.cast(stats[0], ti.f64)
+        amax = ti.cast(stats[1], ti.f64)
+        ctl[VMAX] = vmax
+        ctl[AMAX] = amax
+        dt = cfl_hs / (sound + vmax)
+        if amax > 0.0:
+            dt = ti.min(dt, 0.25 * ti.sqrt(hs / amax))
+        if not dt >= min_dt:
+            ctl[UNSTABLE] = 1.0
+            ctl[DT] = dt
+            ctl[GO] = 0.0
+        else:
+            land_on_target(ctl, ti.min(dt, cap))
+
+
+@ti.kernel
+def k_advance(position: V3, velocity: V3, acceleration: V3, ref: V3, limit: ti.f32,
+              box: Box, ctype: I1, cprm: F2, sdf: F1, ctl: D1):
+    """Leapfrog, v_{n+1/2} = v_{n-1/2} + KICK a_n, x_{n+1} = x_n + DT v_{n+1/2}; then the walls
+    and colliders (boundaries.collide_one); MOVED if a particle is now `limit` or more from
+    where the lists were built; then the step ends (clock.end_step)."""
     for i in position:
-        v = velocity[i] + kick * acceleration[i]
-        position[i] = position[i] + dt * v
-        velocity[i] = v
+        if gate_open(ctl):
+            v = velocity[i] + ti.cast(ctl[KICK], ti.f32) * acceleration[i]
+            x = position[i] + ti.cast(ctl[DT], ti.f32) * v
+            x, v = collide_one(x, v, box, ctype, cprm, sdf)
+            position[i] = x
+            velocity[i] = v
+            if (x - ref[i]).norm() >= limit:
+                ctl[MOVED] = 1.0          # a plain store: every writer writes 1
+    if gate_open(ctl):
+        end_step(ctl)
 
 
 @ti.kernel

@@ -174,6 +174,30 @@ def test_interleaved_lists_are_the_same_lists(solver, monkeypatch):
         np.testing.assert_allclose(a[key], b[key], rtol=1e-5, atol=1e-7, err_msg=key)
 
 
+def test_batched_gated_steps_match_one_step_at_a_time(monkeypatch):
+    """A GPU launches several WCSPH steps between reads of the controller (solver/clock.py),
+    each gated so that it does nothing once the lists must be rebuilt or the frame's time is
+    reached. Forced on the CPU with batches of 7: the same steps, the same list rebuilds and a
+    bit-identical state at every frame time as stepping one at a time."""
+    from solver.sph import SPHSolver
+
+    spec_dict = wcsph_spec(((0.0, 0.1, 0.0), (0.12, 0.25, 0.12)), ((0, 0, 0), (0.3, 0.3, 0.3)))
+    runs = []
+    for batch in (None, 7):
+        monkeypatch.setattr(SPHSolver, "BATCH", batch)
+        _, _, s = make_solver(spec_dict)
+        frames = []
+        for k in range(1, 4):
+            s.advance_to(k / 48)
+            frames.append((s.time, s.steps, s.lists_built, s.state()))
+        runs.append(frames)
+    for (t_a, n_a, built_a, a), (t_b, n_b, built_b, b) in zip(*runs):
+        assert (t_a, n_a, built_a) == (t_b, n_b, built_b)
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert runs[0][-1][2] > 3 and runs[0][-1][0] == 3 / 48
+
+
 def test_verlet_lists_hold_every_pair_within_h_until_rebuilt():
     """A block falls 0.2 m and splashes on the floor. The lists are rebuilt only when a particle
     has moved skin/2, so most steps use lists built steps earlier. Every 7th step, the pairs
