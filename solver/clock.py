@@ -10,9 +10,11 @@ steps, reads the array once, and acts on what it says.
 """
 import taichi as ti
 
-# entries of the controller array
+# entries of the controller array: the clock and the run's state, then the constants of the
+# step length (set once)
 TIME, DT_PREV, DT, KICK, TARGET, GO, MOVED, STEPS, UNSTABLE, VMAX, AMAX = range(11)
-SIZE = 11
+CFL_HS, HS, SOUND, MIN_DT, CAP = range(11, 16)
+SIZE = 16
 NEVER = 1e30       # the target of a step with no target time
 
 D1 = ti.types.ndarray(dtype=ti.f64, ndim=1)

@@ -29,7 +29,7 @@ from .neighbours import (CELL_DIV, SKIN, k_count, k_fill_i, k_gather, k_moved_be
                          k_neighbours, k_scatter, exclusive_scan)
 from .params import F_ETA, F_MU, F_RHO0, F_SIGMA, SolverParams
 from .types import Box, Consts, ivec2, ivec3, vec3
-from .wcsph import k_advance, k_density, k_forces, k_synced_velocity, k_time_step
+from .wcsph import k_advance, k_density, k_forces, k_synced_velocity
 
 # A step shorter than this fraction of the acoustic CFL step means the state has blown up. The
 # three example shots at their own resolution, all frames, never went below 0.75 of it.
@@ -112,8 +112,7 @@ class SPHSolver:
         self.ctl, self.open_gate = ti.ndarray(ti.f64, clock.SIZE), ti.ndarray(ti.f64, clock.SIZE)
         self.open_gate.fill(1.0)
         self._moved: bool | None = None       # the last batch's MOVED, while still current
-        self.batch = 1                        # gated steps launched between reads of the controller
-        self._built_at = self.steps
+        self._built_at, self._life = self.steps, 1     # when the lists were built, how long the last lasted
         # neighbour lists: room for 1.5x the fill lattice's pairs within h + skin, grown on overflow
         self.nb_cap = 0
         self.on_cpu = current_arch() == "cpu"
@@ -149,6 +148,10 @@ class SPHSolver:
         self.tension = bool((params.fluid_table[:, F_SIGMA] > 0).any())   # compile the color field in?
         ctl = np.zeros(clock.SIZE)
         ctl[[clock.TIME, clock.DT_PREV, clock.STEPS]] = self.time, self.dt_prev, self.steps
+        hs = 0.5 * h
+        ctl[[clock.CFL_HS, clock.HS, clock.SOUND, clock.MIN_DT, clock.CAP]] = (
+            params.cfl * hs, hs, params.speed_of_sound, MIN_DT_FRACTION * params.cfl * hs / params.speed_of_sound,
+            min(self.dt_visc, params.max_dt))
         self.ctl.from_numpy(ctl)
 
     # ----------------------------------------------------------------------------- phases
@@ -177,11 +180,7 @@ class SPHSolver:
         self.lists_built += 1
         # launch about as many gated steps at a time as the lists lasted (1 on the CPU, where
         # a launch waits for its kernel anyway and reading the controller costs nothing)
-        if self.BATCH is not None:
-            self.batch = self.BATCH
-        elif not self.on_cpu:
-            self.batch = min(max(self.steps - self._built_at, 1), 32)
-        self._built_at = self.steps
+        self._life, self._built_at = self.steps - self._built_at, self.steps
 
     def update_lists(self) -> None:
         """Rebuild the neighbour lists if a particle moved skin/2 from its reference position
@@ -230,22 +229,16 @@ class SPHSolver:
                   self.params.density_kind)
 
     def compute_forces(self) -> None:
-        """Accelerations, and the step's largest speed and acceleration in stats."""
+        """Accelerations, then the step length on the device (wcsph.time_step): CFL (sound +
+        flow speed), force and viscous limits, capped by max_dt, landed on the target time. A
+        step under MIN_DT_FRACTION of the acoustic CFL step means the accelerations have blown
+        up (stepping on either crawls -- every particle pushed into one corner ran for over ten
+        minutes on one frame -- or flings particles apart): the controller says UNSTABLE and
+        pull_clock raises."""
         k_forces(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
                  self.density, self.pressure, self.near, self.near_count, self.lay,
                  self.consts, self.box, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom,
                  self.ctype, self.cprm, self.sdf, self.stats, self.ctl, self.params.pressure_kind, self.tension)
-
-    def time_step_on_device(self) -> None:
-        """CFL (sound + flow speed), force and viscous limits, capped by max_dt, landed on the
-        target time. A step under MIN_DT_FRACTION of the acoustic CFL step means the
-        accelerations have blown up (stepping on either crawls -- every particle pushed into one
-        corner ran for over ten minutes on one frame -- or flings particles apart): the
-        controller says UNSTABLE and pull_clock raises."""
-        params, hs = self.params, 0.5 * self.h
-        acoustic = params.cfl * hs / params.speed_of_sound
-        k_time_step(self.stats, self.ctl, params.cfl * hs, hs, params.speed_of_sound, MIN_DT_FRACTION * acoustic,
-                    min(self.dt_visc, params.max_dt))
 
     def advance(self) -> None:
         k_advance(self.position, self.velocity, self.acceleration, self.ref, 0.5 * self.skin,
@@ -267,7 +260,6 @@ class SPHSolver:
         back to the host."""
         run("density", self.compute_density, self.ctl)
         run("forces", self.compute_forces)
-        run("time step", self.time_step_on_device)
         run("integrate", self.advance)
 
     def step(self, t_target: float | None = None, timed: bool = False) -> float:
@@ -279,13 +271,24 @@ class SPHSolver:
         return self.pull_clock()
 
     def advance_some(self, t_target: float) -> None:
-        """`batch` gated steps towards t_target, then one read of the controller."""
+        """batch() gated steps towards t_target, then one read of the controller."""
         self.update_lists()
         clock.k_arm(self.ctl, t_target)
         run = self.phase_runner(False)
-        for _ in range(self.batch):
+        for _ in range(self.batch()):
             self.gated_step(run)
         self.pull_clock()
+
+    def batch(self) -> int:
+        """Gated steps to launch before the next read: on a GPU, about as many as the current
+        lists have left if they last as long as the last ones did (steps launched after the gate
+        closes cost a launch each and do nothing); on the CPU one, since a launch there waits
+        for its kernel anyway and reading the controller costs nothing."""
+        if self.BATCH is not None:
+            return self.BATCH
+        if self.on_cpu:
+            return 1
+        return min(max(self._life - (self.steps - self._built_at), 1), 32)
 
     def pull_clock(self) -> float:
         """Read the controller: time, steps, the last dt and whether the lists must be rebuilt.

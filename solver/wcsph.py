@@ -10,7 +10,7 @@ arrays and constants come in as arguments.
                     + Morris et al. 1997's viscosity in Pa s (see `morris`)
                     - sigma lap c_i n_i / |n_i| / rho_i                            (tension)
                     + g + the walls' pressure (boundary samples, kernels.ghost_tables)
-  time step   CFL on sound + flow speed, force limit; on the device (clock.py)
+  (forces end with the step length: CFL on sound + flow speed, force limit)
   advance     leapfrog: v_{n+1/2} = v_{n-1/2} + a_n (dt_{n-1/2} + dt_{n+1/2}) / 2,
               x_{n+1} = x_n + v_{n+1/2} dt_{n+1/2}; walls and colliders
 Every kernel of a step is gated on the controller array (clock.py), so that a GPU can run
@@ -21,7 +21,8 @@ import taichi as ti
 from . import kernels as K
 from .boundaries import (boundary_sums, collide_one, collider_sdf, domain_walls, hydrostatic_wall, nearest_walls,
                          table3)
-from .clock import AMAX, DT, GO, KICK, MOVED, UNSTABLE, VMAX, D1, end_step, gate_open, land_on_target
+from .clock import (AMAX, CAP, CFL_HS, DT, GO, HS, KICK, MIN_DT, MOVED, SOUND, UNSTABLE, VMAX, D1, end_step,
+                    gate_open, land_on_target)
 from .params import F_B, F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA
 from .types import F1, F2, F4, I1, V3, Box, Consts, ivec2, raise_max, vec3
 
@@ -84,8 +85,8 @@ def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_den
              c: Consts, box: Box, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2,
              ctype: I1, cprm: F2, sdf: F1, stats: F1, ctl: D1, pkern: ti.template(),
              tension: ti.template()):
-    """Accelerations (pressure, viscosity, surface tension, gravity, walls); stats[0] and
-    stats[1] become the largest speed and the largest acceleration."""
+    """Accelerations (pressure, viscosity, surface tension, gravity, walls), then the step length
+    from the largest speed and acceleration (kept in stats[0], stats[1]; see time_step)."""
     h = c.h
     if gate_open(ctl):
         stats[0] = 0.0
@@ -143,27 +144,28 @@ def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_den
             vn, an = vi.norm(), a.norm()
             raise_max(stats, 0, vn)
             raise_max(stats, 1, an)
-
-
-@ti.kernel
-def k_time_step(stats: F1, ctl: D1, cfl_hs: ti.f64, hs: ti.f64, sound: ti.f64, min_dt: ti.f64, cap: ti.f64):
-    """The step length: CFL on sound + flow speed (cfl_hs = cfl h/2), a quarter of
-    sqrt(h/2 / max acceleration), capped; landed on the target time (clock.land_on_target).
-    Under min_dt the accelerations have blown up: UNSTABLE, and the gate closes."""
     if gate_open(ctl):
-        vmax = ti.cast(stats[0], ti.f64)
-        amax = ti.cast(stats[1], ti.f64)
-        ctl[VMAX] = vmax
-        ctl[AMAX] = amax
-        dt = cfl_hs / (sound + vmax)
-        if amax > 0.0:
-            dt = ti.min(dt, 0.25 * ti.sqrt(hs / amax))
-        if not dt >= min_dt:
-            ctl[UNSTABLE] = 1.0
-            ctl[DT] = dt
-            ctl[GO] = 0.0
-        else:
-            land_on_target(ctl, ti.min(dt, cap))
+        time_step(stats, ctl)
+
+
+@ti.func
+def time_step(stats: ti.template(), ctl: ti.template()):
+    """The step length: CFL on sound + flow speed (CFL_HS = cfl h/2), a quarter of
+    sqrt(h/2 / max acceleration), capped; landed on the target time (clock.land_on_target).
+    Under MIN_DT the accelerations have blown up: UNSTABLE, and the gate closes."""
+    vmax = ti.cast(stats[0], ti.f64)
+    amax = ti.cast(stats[1], ti.f64)
+    ctl[VMAX] = vmax
+    ctl[AMAX] = amax
+    dt = ctl[CFL_HS] / (ctl[SOUND] + vmax)
+    if amax > 0.0:
+        dt = ti.min(dt, 0.25 * ti.sqrt(ctl[HS] / amax))
+    if not dt >= ctl[MIN_DT]:
+        ctl[UNSTABLE] = 1.0
+        ctl[DT] = dt
+        ctl[GO] = 0.0
+    else:
+        land_on_target(ctl, ti.min(dt, ctl[CAP]))
 
 
 @ti.kernel
