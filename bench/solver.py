@@ -65,6 +65,9 @@ def child(args) -> None:
     from pipeline.stages.sim import initial_state, make_solver, solver_params
     import taichi as ti
 
+    if args.skin is not None:
+        from solver.sph import SPHSolver
+        SPHSolver.SKIN = args.skin
     spec = scene(args.particles, args.radius, args.solver)
     params = solver_params(spec)
     t0 = time.perf_counter()
@@ -115,6 +118,8 @@ def run_sphshot(args) -> dict:
         cmd.append("--phases")
     if args.device_bytes:
         cmd.append("--device-bytes")
+    if args.skin is not None:
+        cmd += ["--skin", str(args.skin)]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     m = re.search(r"^RESULT (\{.*\})$", proc.stdout, re.M)
     if proc.returncode != 0 or not m:
@@ -156,6 +161,7 @@ def main() -> None:
     ap.add_argument("--anchor-solvers", default="wcsph,dfsph")
     ap.add_argument("--phases", action="store_true", help="time each step phase (adds syncs)")
     ap.add_argument("--device-bytes", action="store_true", help="report the solver's device bytes per particle")
+    ap.add_argument("--skin", type=float, help="Verlet skin in units of h (default: the solver's)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:

@@ -5,19 +5,20 @@ reading anything back.
 A run of steps is armed with a target time; every kernel of a step is gated on GO and does
 nothing once it is 0. The last kernel of a step clears GO when the neighbour lists must be
 rebuilt (a particle moved skin/2 from where they were built) or the target time is reached; the
-step length kernel clears it when the step has blown up. The host launches a batch of gated
+step length clears it when the step has blown up; a list build that overflowed its room keeps
+it closed (OVERFLOW holds the longest list). The host launches a batch of gated
 steps, reads the array once, and acts on what it says.
 """
 import taichi as ti
 
+from .types import D1
+
 # entries of the controller array: the clock and the run's state, then the constants of the
 # step length (set once)
-TIME, DT_PREV, DT, KICK, TARGET, GO, MOVED, STEPS, UNSTABLE, VMAX, AMAX = range(11)
-CFL_HS, HS, SOUND, MIN_DT, CAP = range(11, 16)
-SIZE = 16
+TIME, DT_PREV, DT, KICK, TARGET, GO, MOVED, STEPS, UNSTABLE, VMAX, AMAX, OVERFLOW = range(12)
+CFL_HS, HS, SOUND, MIN_DT, CAP = range(12, 17)
+SIZE = 17
 NEVER = 1e30       # the target of a step with no target time
-
-D1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
 
 
 @ti.func
@@ -27,10 +28,11 @@ def gate_open(ctl: ti.template()) -> bool:
 
 @ti.kernel
 def k_arm(ctl: D1, target: ti.f64):
-    """Open the gate for steps towards `target` (closed at once if it is reached already)."""
+    """Open the gate for steps towards `target` (closed at once if it is reached already, or
+    if the lists overflowed)."""
     ctl[TARGET] = target
     ctl[MOVED] = 0.0
-    ctl[GO] = ti.select(ctl[TIME] < target - 1e-9, 1.0, 0.0)
+    ctl[GO] = ti.select((ctl[TIME] < target - 1e-9) & (ctl[OVERFLOW] == 0.0), 1.0, 0.0)
 
 
 @ti.func

@@ -278,6 +278,7 @@ class DFSPHSolver(SPHSolver):
     Per-step counters for the frame report: iterations of both solves and their final errors.
     """
     EXTRA = ("kappa_density", "kappa_divergence")
+    LISTS_CHECKED_AT_ONCE = True      # DFSPH decides on the host
 
     def __init__(self, params: SolverParams, state: dict[str, np.ndarray], time_s: float = 0.0,
                  step: int = 0, dt_prev: float = 0.0, max_density_error: float = 1e-3,

@@ -6,7 +6,7 @@ within h + skin of it at the reference positions the lists were built at.
 """
 import taichi as ti
 
-from .types import F1, I1, V3, ivec2, ivec3, vec3
+from .types import D1, F1, I1, V3, ivec2, ivec3, vec3
 
 SCAN_BLOCK = 256
 # Cells are (h + skin) / CELL_DIV wide; a particle's list neighbours lie within CELL_DIV cells each way. With
@@ -35,6 +35,13 @@ def flat(c, dims) -> ti.i32:
 def k_fill_i(a: I1, value: ti.i32):
     for i in a:
         a[i] = value
+
+
+@ti.kernel
+def k_clear2(a: I1, b: I1):
+    for i in a:
+        a[i] = 0
+        b[i] = 0
 
 
 @ti.kernel
@@ -118,12 +125,14 @@ def k_gather(order: I1, position: V3, ref: V3, velocity: V3, acceleration: V3, f
 
 @ti.kernel
 def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, reach: ti.f32,
-                 start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3, stats: F1):
+                 start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3, longest: D1, at: ti.i32):
     """Verlet lists: every j != i within `reach` (= h + skin) of i, at the reference positions,
-    in grid order, entry m at verlet[i * lay.x + m * lay.y] (see SPHSolver.lay). A particle with more than `cap` raises stats[2] to its
-    count, and the lists are built again larger. The candidate loop has no branch: in a
+    in grid order, entry m at verlet[i * lay.x + m * lay.y] (see SPHSolver.lay). A particle with
+    more than `cap` raises longest[at] to its count (longest[at] starts at 0 here), and the
+    lists are built again larger. The candidate loop has no branch: in a
     disordered fluid, whether a candidate is a neighbour is a coin toss that a branch
     predictor keeps losing."""
+    longest[at] = 0.0
     for i in ref:
         xi = ref[i]
         ci = cell_of(xi, origin, inv_cell, dims)
@@ -143,7 +152,7 @@ def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2,
                     m += ti.select((r2 < reach * reach) & (j != i), 1, 0)
         verlet_count[i] = ti.min(m, cap)
         if m > cap:
-            ti.atomic_max(stats[2], ti.cast(m, ti.f32))
+            ti.atomic_max(longest[at], ti.cast(m, ti.f64))
 
 
 @ti.kernel

@@ -25,8 +25,8 @@ from .backend import current_arch
 from . import clock
 from .boundaries import collider_arrays, k_collide
 from .errors import TooLarge, Unstable
-from .neighbours import (CELL_DIV, SKIN, k_count, k_fill_i, k_gather, k_moved_beyond,
-                         k_neighbours, k_scatter, exclusive_scan)
+from .neighbours import (CELL_DIV, SKIN, k_clear2, k_count, k_gather, k_moved_beyond, k_neighbours, k_scatter,
+                         exclusive_scan)
 from .params import F_ETA, F_MU, F_RHO0, F_SIGMA, SolverParams
 from .types import Box, Consts, ivec2, ivec3, vec3
 from .wcsph import k_advance, k_density, k_forces, k_synced_velocity
@@ -71,6 +71,8 @@ class SPHSolver:
     KEEP = 0.5      # particle centres stay this many radii from any wall or collider
     INTERLEAVED_LISTS: bool | None = None     # None: by the backend (see _grow_neighbours)
     BATCH: int | None = None                  # gated steps per read of the controller; None: by the backend
+    LISTS_CHECKED_AT_ONCE = False             # WCSPH: an overflow is read with the controller, after the batch
+    SKIN = SKIN                               # Verlet skin in units of h (neighbours.SKIN)
 
     def __init__(self, params: SolverParams, state: dict[str, np.ndarray], time_s: float = 0.0,
                  step: int = 0, dt_prev: float = 0.0):
@@ -85,7 +87,7 @@ class SPHSolver:
         self.h = h
         self.origin = vec3(*params.domain_min)
         size = np.array(params.domain_max) - np.array(params.domain_min)
-        self.skin = SKIN * h
+        self.skin = self.SKIN * h
         cell = (h + self.skin) / CELL_DIV         # the lists reach h + skin
         dims = np.maximum(np.ceil(size / cell).astype(int), 1)
         self.dims = ivec3(*map(int, dims))
@@ -106,7 +108,7 @@ class SPHSolver:
         self.start = ti.ndarray(ti.i32, self.n_cells)
         self.fill = ti.ndarray(ti.i32, self.n_cells)
         self._scan_buffers: dict[int, object] = {}
-        self.stats = ti.ndarray(ti.f32, 3)    # max speed, max acceleration, list overflow
+        self.stats = ti.ndarray(ti.f32, 2)    # max speed, max acceleration
         self.moved = ti.ndarray(ti.i32, 1)    # 1: a particle moved skin/2 from its reference position
         # the step's controller on the device (clock.py), and a gate that stays open
         self.ctl, self.open_gate = ti.ndarray(ti.f64, clock.SIZE), ti.ndarray(ti.f64, clock.SIZE)
@@ -158,8 +160,7 @@ class SPHSolver:
     def build_lists(self) -> None:
         """Sort the particles by the cell of their reference position (a counting sort: count,
         scan, scatter, gather) and list the pairs within h + skin there."""
-        k_fill_i(self.count, 0)
-        k_fill_i(self.fill, 0)
+        k_clear2(self.count, self.fill)
         k_count(self.ref, self.cell, self.count, self.origin, self.inv_cell, self.dims)
         exclusive_scan(self.count, self.start, self.n_cells, self._scan_buffer)
         k_scatter(self.cell, self.start, self.fill, self.order)
@@ -169,18 +170,26 @@ class SPHSolver:
             a, b = getattr(self, name), getattr(self, name + "_b")
             setattr(self, name, b)
             setattr(self, name + "_b", a)
-        while True:
-            self.stats.fill(0.0)
-            k_neighbours(self.ref, self.verlet, self.verlet_count, self.nb_cap, self.lay, self.h + self.skin, self.start,
-                         self.count, self.origin, self.inv_cell, self.dims, self.stats)
-            most = float(self.stats.to_numpy()[2])
-            if most <= self.nb_cap:
-                break
-            self._grow_neighbours(int(1.25 * most) + 8)
+        self.list_pairs()
+        while self.LISTS_CHECKED_AT_ONCE and self._overflowed():
+            self.list_pairs()
         self.lists_built += 1
-        # launch about as many gated steps at a time as the lists lasted (1 on the CPU, where
-        # a launch waits for its kernel anyway and reading the controller costs nothing)
-        self._life, self._built_at = self.steps - self._built_at, self.steps
+        self._life, self._built_at = self.steps - self._built_at, self.steps     # see batch()
+
+    def list_pairs(self) -> None:
+        """The Verlet lists at the sorted reference positions; a list longer than the room
+        leaves its length in the controller's OVERFLOW, which keeps the step gate closed."""
+        k_neighbours(self.ref, self.verlet, self.verlet_count, self.nb_cap, self.lay, self.h + self.skin, self.start,
+                     self.count, self.origin, self.inv_cell, self.dims, self.ctl, clock.OVERFLOW)
+
+    def _overflowed(self, longest: float | None = None) -> bool:
+        """If the last lists overflowed, make room for 1.25x the longest and say so."""
+        if longest is None:
+            longest = float(self.ctl.to_numpy()[clock.OVERFLOW])
+        if longest <= 0:
+            return False
+        self._grow_neighbours(int(1.25 * longest) + 8)
+        return True
 
     def update_lists(self) -> None:
         """Rebuild the neighbour lists if a particle moved skin/2 from its reference position
@@ -265,10 +274,13 @@ class SPHSolver:
     def step(self, t_target: float | None = None, timed: bool = False) -> float:
         """One substep; never steps past t_target. Returns dt."""
         run = self.phase_runner(timed)
-        run("neighbours", self.update_lists)
-        clock.k_arm(self.ctl, clock.NEVER if t_target is None else t_target)
-        self.gated_step(run)
-        return self.pull_clock()
+        steps = self.steps
+        while self.steps == steps:      # (again after lists that overflowed: no step was taken)
+            run("neighbours", self.update_lists)
+            clock.k_arm(self.ctl, clock.NEVER if t_target is None else t_target)
+            self.gated_step(run)
+            self.pull_clock()
+        return self.dt_prev
 
     def advance_some(self, t_target: float) -> None:
         """batch() gated steps towards t_target, then one read of the controller."""
@@ -290,17 +302,16 @@ class SPHSolver:
             return 1
         return min(max(self._life - (self.steps - self._built_at), 1), 32)
 
-    def pull_clock(self) -> float:
-        """Read the controller: time, steps, the last dt and whether the lists must be rebuilt.
-        Returns the last dt; raises Unstable if the step blew up."""
+    def pull_clock(self) -> None:
+        """Read the controller: time, steps, the last dt and whether the lists must be rebuilt
+        (moved, or overflowed: then larger). Raises Unstable if the step blew up."""
         c = self.ctl.to_numpy()
         self.time, self.dt_prev, self.steps = float(c[clock.TIME]), float(c[clock.DT_PREV]), int(c[clock.STEPS])
         self.vmax, self.amax = float(c[clock.VMAX]), float(c[clock.AMAX])
-        self._moved = bool(c[clock.MOVED] > 0.5)
+        self._moved = bool(c[clock.MOVED] > 0.5) or self._overflowed(float(c[clock.OVERFLOW]))
         if c[clock.UNSTABLE] > 0.5:
             raise Unstable(f"the time step fell to {c[clock.DT]:.3g} s (max acceleration {self.amax:.3g} m/s^2, "
                            f"max speed {self.vmax:.3g} m/s)")
-        return self.dt_prev
 
     def time_step(self, t_target: float | None) -> float:
         """The stable step (self.stable_dt, on the host), shortened to land on t_target without

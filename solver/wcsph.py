@@ -21,10 +21,10 @@ import taichi as ti
 from . import kernels as K
 from .boundaries import (boundary_sums, collide_one, collider_sdf, domain_walls, hydrostatic_wall, nearest_walls,
                          table3)
-from .clock import (AMAX, CAP, CFL_HS, DT, GO, HS, KICK, MIN_DT, MOVED, SOUND, UNSTABLE, VMAX, D1, end_step,
+from .clock import (AMAX, CAP, CFL_HS, DT, GO, HS, KICK, MIN_DT, MOVED, SOUND, UNSTABLE, VMAX, end_step,
                     gate_open, land_on_target)
 from .params import F_B, F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA
-from .types import F1, F2, F4, I1, V3, Box, Consts, ivec2, raise_max, vec3
+from .types import D1, F1, F2, F4, I1, V3, Box, Consts, ivec2, raise_max, vec3
 
 
 @ti.func
