@@ -53,6 +53,13 @@ MIN_ITERATIONS = 2
 # kappa blew a resting column up within 2 s); SPlisHSPlasH takes half.
 WARM_START = 0.5
 MUELLER, AKINCI = 1, 2          # surface tension models
+# The CFL speed is at least this share of the shot's expected largest speed V = sqrt(2 g H).
+# A resting column of height H took the steps of max_dt and blew up within a few steps above
+# dt = 2.8 r / V (tried: 0.4 m at r = 2.5 mm above 2.5-3 ms, at r = 5 mm above 4.2-6 ms;
+# 0.2 m at r = 5 mm above 6-8 ms): the step the density solve can hold a column with scales
+# with r / sqrt(g H), the time a gravity wave takes to cross a particle. With cfl = 0.4 a
+# floor of V / 4 caps the step at 1.6 r / V, 0.57 of that limit.
+SPEED_FLOOR = 0.25
 
 
 @ti.kernel
@@ -282,7 +289,7 @@ class DFSPHSolver(SPHSolver):
 
     def __init__(self, params: SolverParams, state: dict[str, np.ndarray], time_s: float = 0.0,
                  step: int = 0, dt_prev: float = 0.0, max_density_error: float = 1e-3,
-                 max_divergence_error: float = 1e-3, max_iterations: int = 100):
+                 max_divergence_error: float = 1e-3, max_iterations: int = 100, expected_speed: float = 0.0):
         if params.density_kind != params.pressure_kind:
             raise ValueError("DFSPH takes one kernel for the density and its gradient")
         super().__init__(params, state, time_s, step, dt_prev)
@@ -290,6 +297,8 @@ class DFSPHSolver(SPHSolver):
         self.max_density_error = float(max_density_error)
         self.max_divergence_error = float(max_divergence_error)
         self.max_iterations = int(max_iterations)
+        # the CFL speed's floor (see stable_dt); 0 without an expected speed
+        self.speed_floor = SPEED_FLOOR * float(expected_speed)
         self.alpha, self.kappa = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
         self.wall_grad = ti.Vector.ndarray(3, ti.f32, shape=n)
         self.normal = ti.Vector.ndarray(3, ti.f32, shape=n)     # Akinci et al. 2013's surface normals
@@ -373,7 +382,9 @@ class DFSPHSolver(SPHSolver):
         self.vmax = float(self.stats.to_numpy()[0])
 
     def stable_dt(self) -> float:
-        """CFL on the particle speed alone: nothing moves more than cfl particle radii a step."""
+        """CFL on the particle speed: nothing moves more than cfl particle radii a step. The
+        speed is taken as at least SPEED_FLOOR of the shot's expected largest speed, so that a
+        column at rest does not take steps of max_dt whatever the resolution."""
         if not math.isfinite(self.vmax):
             raise Unstable(f"a particle's speed is {self.vmax} m/s")
         if self.vmax > self.params.speed_of_sound:
@@ -381,7 +392,7 @@ class DFSPHSolver(SPHSolver):
             # example at four times its resolution once took 21,675 steps for one frame)
             raise Unstable(f"a particle's speed is {self.vmax:.3g} m/s, over 10 times the shot's expected "
                            f"largest speed")
-        dt = self.params.cfl * self.params.particle_radius / max(self.vmax, 1e-9)
+        dt = self.params.cfl * self.params.particle_radius / max(self.vmax, self.speed_floor, 1e-9)
         return min(dt, self.dt_visc, self.params.max_dt)
 
     def drift(self, dt: float) -> None:

@@ -101,7 +101,7 @@ def make_solver(spec, params: SolverParams, state: dict, **controller):
     if spec.sim.solver == "dfsph":
         return DFSPHSolver(params, state, **controller, max_density_error=spec.sim.max_density_error,
                            max_divergence_error=spec.sim.max_divergence_error,
-                           max_iterations=spec.sim.max_iterations)
+                           max_iterations=spec.sim.max_iterations, expected_speed=spec.expected_max_speed())
     return SPHSolver(params, state, **controller)
 
 
