@@ -181,12 +181,13 @@ class ShotPaths:
     fluids: tuple[str, ...]
     per_fluid: bool
     vdb: bool = True            # the surface stage writes a .vdb (surface.grids names some grid)
+    spray: bool = False         # the surface stage writes a spray points file (surface.spray > 0)
 
     @classmethod
     def for_spec(cls, spec: ShotSpec) -> "ShotPaths":
         return cls(root=spec.output_root, name=spec.shot.name, mesh_ext=spec.surface.format,
                    fluids=tuple(f.name for f in spec.fluids), per_fluid=spec.surface.per_fluid,
-                   vdb=bool(spec.surface.grids))
+                   vdb=bool(spec.surface.grids), spray=spec.surface.spray > 0)
 
     def stage_dir(self, stage: str) -> Path:
         return self.root / stage
@@ -207,6 +208,10 @@ class ShotPaths:
 
     def surface_vdb(self, frame: int) -> Path:
         return self.root / "surface" / f"{self.name}.{frame:04d}.vdb"
+
+    def surface_spray(self, frame: int) -> Path:
+        """The frame's spray particles: PLY points with velocity and pscale (radius)."""
+        return self.root / "surface" / f"{self.name}.{frame:04d}.spray.ply"
 
     def surface_meshes(self, frame: int) -> dict[str | None, Path]:
         """Mesh files of a frame: {None: all fluids} or {fluid name: mesh} when per_fluid."""
@@ -245,7 +250,7 @@ class ShotPaths:
         if stage != "surface":
             return []
         current = set(self.frame_files(stage, frame))
-        d, others = self.root / "surface", [self.surface_vdb(frame)]
+        d, others = self.root / "surface", [self.surface_vdb(frame), self.surface_spray(frame)]
         for ext in ("ply", "obj", "vtu"):
             others.append(d / f"{self.name}.{frame:04d}.{ext}")
             others += [d / f"{self.name}.{f}.{frame:04d}.{ext}" for f in self.fluids]

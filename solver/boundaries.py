@@ -203,6 +203,31 @@ def collider_clearance(params: SolverParams, points: np.ndarray) -> np.ndarray:
     return out.to_numpy()[:len(points)]
 
 
+@ti.kernel
+def k_project_outside(position: V3, ctype: I1, cprm: F2, sdf: F1, margin: ti.f32):
+    """Move each point on a collider's solid side onto its surface plus `margin`, along the
+    collider's normal (twice over the colliders, for points where two meet)."""
+    for i in position:
+        x = position[i]
+        for _sweep in ti.static(range(2)):
+            for k in range(ctype.shape[0]):
+                phi, n = collider_sdf(ctype[k], cprm, sdf, k, x)
+                if phi < margin:
+                    x += (margin - phi) * n
+        position[i] = x
+
+
+def project_outside(params: SolverParams, points: np.ndarray, margin: float = 0.0) -> np.ndarray:
+    """The points, those on some collider's solid side moved out onto its surface (+ margin):
+    a surface mesh that meets a collider instead of passing into it."""
+    if len(points) == 0 or len(params.collider_tables[0]) == 0:
+        return points
+    position = ti.Vector.ndarray(3, ti.f32, shape=len(points))
+    position.from_numpy(np.asarray(points, np.float32))
+    k_project_outside(position, *collider_arrays(params), float(margin))
+    return position.to_numpy()
+
+
 def collider_arrays(params: SolverParams):
     """(types, parameter table, distance grids): the colliders as the kernels take them."""
     out = []

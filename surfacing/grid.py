@@ -49,6 +49,7 @@ class Field:
         self.velocity_ids = velocity_ids        # the block ids that carry velocity
         self.velocity_rows = velocity_rows      # the velocity on the device: node-major vectors
         self._upper = None
+        self.spray = None                       # mask of the particles left out as spray (input order)
 
     @property
     def n_blocks(self) -> int:

@@ -8,6 +8,7 @@ density, the velocity grid, the mesh and the particles line up in Houdini or Ble
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -26,14 +27,21 @@ class SurfaceParams:
     kernel: str = "cubic"               # splat kernel: cubic, poly6 or wendland
     smoothing_iterations: int = 0       # Taubin smoothing passes
     decimate: float = 0.0               # fraction of triangles removed
+    method: str = "isotropic"           # or "anisotropic" (Yu & Turk 2013: surfacing/anisotropy.py)
+    spray_below: int = 0                # fewer neighbours than this within 2 supports: spray
+    center_smoothing: float = 0.0       # anisotropic: Yu & Turk's lambda
+    inside: tuple | None = None         # (lo, hi): the mesh is kept inside this box (the domain)
+    outside_solids: Callable | None = None   # points -> points moved out of the solids (colliders)
 
 
 def reconstruct(positions, velocities, volumes, params: SurfaceParams) -> tuple[Field, Mesh]:
     """(field, mesh) of one set of particles: the color (and velocity) field, and the surface
     mesh after smoothing and decimation."""
     field = color_field(positions, velocities, volumes, params.cell, params.kernel_radius, params.iso,
-                        params.kernel)
-    return field, surface_mesh(field, params.iso, params.smoothing_iterations, params.decimate)
+                        params.kernel, anisotropic=params.method == "anisotropic", spray_below=params.spray_below,
+                        center_smoothing=params.center_smoothing)
+    return field, surface_mesh(field, params.iso, params.smoothing_iterations, params.decimate, params.inside,
+                               params.outside_solids)
 
 
 def particle_volumes(data: dict, attrs: dict) -> np.ndarray:
@@ -50,14 +58,17 @@ def particle_volumes(data: dict, attrs: dict) -> np.ndarray:
 
 
 def color_field(positions, velocities, volumes, cell: float, support: float, iso: float = 0.5,
-                 kernel: str = "cubic", method: str = "auto") -> Field:
+                 kernel: str = "cubic", method: str = "auto", anisotropic: bool = False,
+                 spray_below: int = 0, center_smoothing: float = 0.0) -> Field:
     """Splat the particles onto the blocks their supports reach (`kernel`: cubic, poly6 or
-    wendland). With `velocities`, the velocity field too, on the blocks the `iso` surface
-    crosses and their upper neighbours (what the mesh's vertices and a motion-blur band need),
-    from only the particles that reach them. `method`: the scatter (surfacing/splat.py: "auto"
-    picks by the backend)."""
-    sp = Splat(positions, volumes, cell, support, kernel, method)
+    wendland; `anisotropic`: stretched after Yu & Turk 2013). With `velocities`, the velocity
+    field too, on the blocks the `iso` surface crosses and their upper neighbours (what the
+    mesh's vertices and a motion-blur band need), from only the particles that reach them.
+    `method`: the scatter (surfacing/splat.py: "auto" picks by the backend). Particles with
+    fewer than `spray_below` neighbours are left out; field.spray is their mask."""
+    sp = Splat(positions, volumes, cell, support, kernel, method, anisotropic, spray_below, center_smoothing)
     field = Field(sp.color(), sp.blocks, sp.lookup, sp.base_block, cell)
+    field.spray = sp.spray
     if velocities is not None and field.n_blocks:
         ids, upper = field.crossing_blocks(iso)
         band = np.union1d(ids, upper[upper < field.n_blocks])
@@ -72,12 +83,20 @@ def marching_cubes(field: Field, iso: float) -> Mesh:
     return Mesh(points, faces, D.host(normals)[:len(points)], velocity)
 
 
-def surface_mesh(field: Field, iso: float, smoothing_iterations: int, decimate: float) -> Mesh:
+def surface_mesh(field: Field, iso: float, smoothing_iterations: int, decimate: float,
+                 inside: tuple | None = None, outside_solids: Callable | None = None) -> Mesh:
     """What the surface stage writes: marching cubes, then optional Taubin smoothing and
-    decimation, with the vertex normals computed once, at the end."""
+    decimation, then with `inside` = (lo, hi) every vertex moved into that box and with
+    `outside_solids` out of the solids (water meets a wall or an obstacle instead of passing
+    into it: the kernels reach past the particles next to it), with the vertex normals computed
+    once, at the end."""
     points, faces, velocity, _ = _triangulate(field, iso)
     if len(faces) and (smoothing_iterations or decimate):
         points, faces, velocity = _smooth(points, faces, velocity, smoothing_iterations, decimate)
+    if inside is not None and len(points):
+        points = np.clip(points, np.asarray(inside[0], np.float32), np.asarray(inside[1], np.float32))
+    if outside_solids is not None and len(points):
+        points = np.asarray(outside_solids(points), np.float32)
     return _with_normals(points, faces, velocity)
 
 

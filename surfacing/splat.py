@@ -34,7 +34,7 @@ import taichi as ti
 from solver import kernels as K
 from solver.types import F1, I1, V3, ivec3, vec3
 
-from . import device as D
+from . import anisotropy as A, device as D
 from .device import I3, I64, R8
 from .grid import B, GridTooLarge
 
@@ -74,8 +74,8 @@ def k_mark(pos: V3, origin: vec3, cell: ti.f32, h: ti.f32, used: I3):
 
 @ti.kernel
 def k_splat(pos: V3, vel: V3, vol: F1, start: I1, count: I1, touches: I1, key0: ti.i32, key1: ti.i32, origin: vec3,
-            cell: ti.f32, h: ti.f32, target: I3, out: R8, sigma: ti.f32, kind: ti.template(),
-            velocity_pass: ti.template()):
+            cell: ti.f32, h: ti.f32, target: I3, out: R8, sigma: ti.f32, shape: A.R7, kind: ti.template(),
+            velocity_pass: ti.template(), anisotropic: ti.template()):
     """Each particle adds into the nodes of its support, slab by slab and a block row (8 nodes
     along z, one vector) at a time: for each node plane i the sphere cuts, the block rows of
     the square around the plane's disc whose nearest node lies inside the sphere. The 8 weights
@@ -89,7 +89,9 @@ def k_splat(pos: V3, vel: V3, vol: F1, start: I1, count: I1, touches: I1, key0: 
     with touches[p] only. The outer loop runs over one phase's cubes (keys key0 to key1) in
     parallel; see the module docstring. Plain loads and stores,
     not `+=` (which Taichi compiles to an atomic add). Node indices are never negative, so
-    `>> 3` and `& 7` are the block and the node within it. Distances are in units of h."""
+    `>> 3` and `& 7` are the block and the node within it. Distances are in units of h.
+    `anisotropic`: the kernel of particle p is W(|A_p d|) (shape[p]: surfacing/anisotropy.py),
+    inside the isotropic sphere, so the sphere's pruning still holds."""
     nx, ny, nz = target.shape[0] * B, target.shape[1] * B, target.shape[2] * B
     inv = 1.0 / cell
     ih = 1.0 / h
@@ -124,7 +126,10 @@ def k_splat(pos: V3, vel: V3, vol: F1, start: I1, count: I1, touches: I1, key0: 
                             if y * y < rem:
                                 b = target[i >> 3, j >> 3, kb]
                                 if b >= 0:
-                                    w = K.shape(kind, txz + y * y)
+                                    q = txz + y * y
+                                    if ti.static(anisotropic):
+                                        q = A.quad(shape, p, dx, y, z)
+                                    w = K.shape(kind, q)
                                     row = (i & 7) * B + (j & 7)
                                     if ti.static(velocity_pass):    # no races: see above
                                         for a in ti.static(range(3)):
@@ -137,7 +142,8 @@ def k_splat(pos: V3, vel: V3, vol: F1, start: I1, count: I1, touches: I1, key0: 
 
 @ti.kernel
 def k_splat_atomic(pos: V3, vel: V3, vol: F1, touches: I1, slabs: ti.i32, origin: vec3, cell: ti.f32, h: ti.f32,
-                   target: I3, acc: I64, scale: ti.f32, kind: ti.template(), velocity_pass: ti.template()):
+                   target: I3, acc: I64, scale: ti.f32, shape: A.R7, kind: ti.template(), velocity_pass: ti.template(),
+                   anisotropic: ti.template()):
     """The GPU scatter: one thread per particle and node plane of its support (`slabs` planes
     at most), adding round(scale V_j W) -- times v_j in the velocity pass -- into the integer
     sums `acc` with atomics (node n of slot b at b * 512 + n; component a of the momentum at
@@ -169,6 +175,8 @@ def k_splat_atomic(pos: V3, vel: V3, vol: F1, touches: I1, slabs: ti.i32, origin
                         for k in range(k0, k1 + 1):
                             dz = (origin.z + cell * k - x.z) * ih
                             q = dx * dx + dy * dy + dz * dz
+                            if ti.static(anisotropic):
+                                q = A.quad(shape, p, dx, dy, dz)
                             b = target[i >> 3, j >> 3, k >> 3]
                             if q < 1.0 and b >= 0:
                                 w = K.shape(kind, q)
@@ -256,6 +264,12 @@ def k_take_v3(order: I1, src: V3, dst: V3):
 
 
 @ti.kernel
+def k_take_i1(order: I1, src: I1, dst: I1):
+    for s in order:
+        dst[s] = src[order[s]]
+
+
+@ti.kernel
 def k_take_f1(order: I1, src: F1, dst: F1):
     for s in order:
         dst[s] = src[order[s]]
@@ -320,27 +334,74 @@ class Splat:
     the velocity field on the blocks `ids` only, from the particles that reach them."""
 
     def __init__(self, positions: np.ndarray, volumes: np.ndarray, cell: float, support: float,
-                 kernel: str = "cubic", method: str = "auto"):
-        """method: "phased", "atomic" or "auto" (atomic on CUDA, else phased)."""
+                 kernel: str = "cubic", method: str = "auto", anisotropic: bool = False, spray_below: int = 0,
+                 center_smoothing: float = 0.0):
+        """method: "phased", "atomic" or "auto" (atomic on CUDA, else phased). anisotropic: Yu
+        & Turk's kernels (surfacing/anisotropy.py), centres smoothed by `center_smoothing`
+        (their lambda). spray_below: particles with fewer neighbours than this within
+        anisotropy.RADIUS supports (itself counted) are spray, left out of the field
+        (self.spray: their mask, in input order)."""
+        self.center_smoothing = float(center_smoothing)
         self.cell, self.support = float(cell), float(support)
         self.atomic = D.on_cuda() if method == "auto" else method == "atomic"
+        self.anisotropic = bool(anisotropic)
         self.kind = K.DENSITY_KERNELS[kernel]
         self.sigma = K.sigma(self.kind, self.support)
         self.base_block, shape, self.origin, top = grid_frame(positions, cell, support)
         self.n = len(positions)
-        raw = D.vec3s(positions)
+        self.spray = np.zeros(self.n, bool)
+        raw, vol = D.vec3s(positions), D.upload(np.asarray(volumes), ti.f32)
+        self.shape = D.zeros(ti.f32, 1, A.COLUMNS)            # (not read by the isotropic splat)
+        self.order = None
+        if self.anisotropic or spray_below > 0:
+            raw, vol = self._anisotropy(raw, vol, top, spray_below)
         if self.atomic:                     # any order will do
-            self.order = None
-            self.pos, self.vol = raw, D.upload(np.asarray(volumes), ti.f32)
+            self.pos, self.vol = raw, vol
         else:
-            self.order, self.start, self.count, self.per_phase = sort_by_cube(raw, self.origin, top, support)
-            self.pos = D.empty(ti.f32, self.n, 3)
-            k_take_v3(self.order, raw, self.pos)
-            del raw
-            self.vol = D.empty(ti.f32, self.n)
-            k_take_f1(self.order, D.upload(np.asarray(volumes), ti.f32), self.vol)
+            self.pos, self.vol, self.shape = self._sorted(raw, vol, top, self.shape)
         self.lookup, self.blocks = mark_blocks(self.pos, self.base_block, shape, self.origin, cell, support)
         self.lookup_dev = D.upload(self.lookup)
+
+    def _sorted(self, pos, vol, top, table=None):
+        """(pos, vol, table) sorted by cube (table: per-particle rows, or None to leave as is);
+        self.order, start, count and per_phase follow (order: into the input order)."""
+        order, self.start, self.count, self.per_phase = sort_by_cube(pos, self.origin, top, self.support)
+        out_pos, out_vol = D.empty(ti.f32, self.n, 3), D.empty(ti.f32, self.n)
+        k_take_v3(order, pos, out_pos)
+        k_take_f1(order, vol, out_vol)
+        if table is not None and table.shape[0] == self.n:
+            rows = D.empty(ti.f32, self.n, A.COLUMNS)
+            A.k_take_rows(order, table, rows)
+            table = rows
+        if self.order is None:
+            self.order = order
+        else:                               # composed with the sort before it
+            both = D.empty(ti.i32, self.n)
+            k_take_i1(order, self.order, both)
+            self.order = both
+        return out_pos, out_vol, table
+
+    def _anisotropy(self, raw, vol, top, spray_below: int):
+        """Sort by cube, then per particle its neighbour count (spray), and with `anisotropic`
+        its smoothed centre and kernel (surfacing/anisotropy.py). Returns (positions, volumes)
+        in the sorted order, the centres for positions where anisotropic."""
+        pos, vol, _ = self._sorted(raw, vol, top)
+        edge = 2.0 * self.support
+        dims = [int(v) + 1 for v in np.floor((top - self.origin) / edge)]
+        half = [(d + 1) // 2 for d in dims]
+        center, table = D.empty(ti.f32, self.n, 3), D.empty(ti.f32, self.n, A.COLUMNS)
+        neighbours = D.empty(ti.i32, self.n)
+        A.k_anisotropy(pos, self.start, self.count, vec3(*map(float, self.origin)), edge, ivec3(*dims),
+                       ivec3(*half), A.RADIUS * self.support, self.center_smoothing if self.anisotropic else 0.0, center, table,
+                       neighbours)
+        A.k_weigh(vol, table, neighbours, spray_below, self.anisotropic)
+        if spray_below > 0:
+            few = D.host(neighbours) < spray_below
+            self.spray[D.host(self.order)[few]] = True
+        if not self.anisotropic:
+            return pos, vol
+        self.shape = table
+        return center, vol
 
     @property
     def n_blocks(self) -> int:
@@ -366,7 +427,7 @@ class Splat:
         k_touches(self.pos, vec3(*map(float, self.origin)), self.cell, self.support, target, touches)
         momentum = D.zeros(ti.f32, (nv + 1) * 3 * B2, B)
         vel = D.vec3s(velocities)
-        if not self.atomic:
+        if self.order is not None:
             sorted_vel = D.empty(ti.f32, self.n, 3)
             k_take_v3(self.order, vel, sorted_vel)
             vel = sorted_vel
@@ -386,10 +447,11 @@ class Splat:
             acc = D.zeros(ti.i64, out.shape[0] * B)
             slabs = int(math.floor(2.0 * self.support / self.cell)) + 2
             k_splat_atomic(self.pos, vel, self.vol, touches, slabs, vec3(*map(float, self.origin)), self.cell,
-                           self.support, target, acc, self.sigma * scale, self.kind, velocity_pass)
+                           self.support, target, acc, self.sigma * scale, self.shape, self.kind, velocity_pass,
+                           self.anisotropic)
             k_fixed_to_rows(acc, 1.0 / scale, out)
             return
         for ph in range(8):
             k_splat(self.pos, vel, self.vol, self.start, self.count, touches, ph * self.per_phase,
                     (ph + 1) * self.per_phase, vec3(*map(float, self.origin)), self.cell, self.support, target,
-                    out, self.sigma, self.kind, velocity_pass)
+                    out, self.sigma, self.shape, self.kind, velocity_pass, self.anisotropic)

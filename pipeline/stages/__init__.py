@@ -49,7 +49,8 @@ def _sim_sections(spec) -> dict[str, Any]:
 
 
 def _surface_files(paths, frame: int) -> list:
-    return ([paths.surface_vdb(frame)] if paths.vdb else []) + list(paths.surface_meshes(frame).values())
+    return (([paths.surface_vdb(frame)] if paths.vdb else []) + list(paths.surface_meshes(frame).values())
+            + ([paths.surface_spray(frame)] if paths.spray else []))
 
 
 STAGES: dict[str, Stage] = {s.name: s for s in (
@@ -58,7 +59,7 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
           hashed=_sim_sections, format_version=3),
     Stage("surface", "sim", "pipeline.stages.surface", per_frame=True,
           frame_files=_surface_files,
-          hashed=lambda spec: {"surface": spec.surface.model_dump()}, format_version=2),   # 2: grid `vel`
+          hashed=lambda spec: {"surface": spec.surface.model_dump()}, format_version=3),   # 3: spray file
     Stage("render", "surface", "pipeline.stages.render", per_frame=True,
           frame_files=lambda paths, frame: [paths.render_frame(frame)],
           hashed=lambda spec: {"render": spec.render.model_dump()}, format_version=1),

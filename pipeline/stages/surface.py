@@ -5,6 +5,7 @@ become one-line stage errors.
 """
 from __future__ import annotations
 
+import functools
 import logging
 
 import numpy as np
@@ -15,23 +16,36 @@ from surfacing.mesh import Mesh
 from surfacing.reconstruct import SurfaceParams, particle_volumes, reconstruct
 
 from ..errors import StageError
-from ..formats import read_frame, write_mesh, write_vdb
+from ..formats import read_frame, write_mesh, write_points, write_vdb
 
 log = logging.getLogger("sphshot")
 
 
+@functools.lru_cache(maxsize=4)
 def surface_params(spec) -> SurfaceParams:
+    """surfacing's parameters from the spec: the mesh is kept inside the domain and out of the
+    colliders (solver.boundaries.project_outside, through the sim's collider tables: made once
+    per spec, since a mesh collider's distance grid takes a while)."""
     s = spec.surface
-    return SurfaceParams(cell=spec.surface_cell_m, kernel_radius=spec.surface_kernel_radius_m, iso=s.iso,
-                         kernel=s.kernel, smoothing_iterations=s.smoothing_iterations, decimate=s.decimate)
+    solids = None
+    if spec.colliders:
+        from solver.boundaries import project_outside
+        from .sim import solver_params
+
+        sp = solver_params(spec)
+        solids = functools.partial(project_outside, sp)
+    return SurfaceParams(cell=spec.surface_cell_m, kernel_radius=spec.surface_kernel_radius_m, iso=s.iso_value,
+                         kernel=s.kernel, smoothing_iterations=s.smoothing_iterations, decimate=s.decimate,
+                         method=s.method, spray_below=s.spray, center_smoothing=s.center_smoothing,
+                         inside=(spec.domain.min, spec.domain.max), outside_solids=solids)
 
 
 def surface_frame(spec, data: dict, attrs: dict, frame: int):
-    """Build (field, mesh, {fluid: mesh}) for one frame of particles."""
+    """Build (field, mesh, {fluid: mesh}, spray mask) for one frame of particles."""
     position = data["position"]
     if len(position) == 0:
         log.warning("frame %04d: surfacing: no particles; writing an empty mesh and empty grids", frame)
-        return None, Mesh.empty(), {f.name: Mesh.empty() for f in spec.fluids}
+        return None, Mesh.empty(), {f.name: Mesh.empty() for f in spec.fluids}, np.zeros(0, bool)
     volume = particle_volumes(data, attrs)
     params = surface_params(spec)
 
@@ -39,12 +53,13 @@ def surface_frame(spec, data: dict, attrs: dict, frame: int):
         return reconstruct(position[mask], data["velocity"][mask], volume[mask], params)
 
     field, mesh = build(np.ones(len(position), bool))
+    spray = field.spray if field.spray is not None else np.zeros(len(position), bool)
     per_fluid = {}
     if spec.surface.per_fluid:
         for fi, f in enumerate(spec.fluids):
             mask = data["fluid"] == fi
             per_fluid[f.name] = build(mask)[1] if mask.any() else Mesh.empty()
-    return field, mesh, per_fluid
+    return field, mesh, per_fluid, spray
 
 
 def run(spec, frames, paths, progress) -> None:
@@ -66,7 +81,7 @@ def _write_frame(spec, frame: int, paths) -> list:
     except OSError as exc:
         raise StageError(f"frame {frame:04d}: surfacing: cannot read {src}: {exc}") from exc
     try:
-        field, mesh, per_fluid = surface_frame(spec, data, attrs, frame)
+        field, mesh, per_fluid, spray = surface_frame(spec, data, attrs, frame)
     except SurfacingError as exc:
         raise StageError(f"frame {frame:04d}: surfacing: {exc}") from exc
     written = []
@@ -77,4 +92,7 @@ def _write_frame(spec, frame: int, paths) -> list:
         written.append(write_vdb(paths.surface_vdb(frame), grids))
     for key, path in paths.surface_meshes(frame).items():
         written.append(write_mesh(path, mesh if key is None else per_fluid[key], spec.surface.format))
+    if paths.spray:
+        written.append(write_points(paths.surface_spray(frame), data["position"][spray], data["velocity"][spray],
+                                    float(attrs.get("particle_radius", spec.sim.particle_radius))))
     return written

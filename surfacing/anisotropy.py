@@ -1,0 +1,123 @@
+"""Anisotropic kernels after Yu & Turk 2013 ("Reconstructing surfaces of particle-based fluids
+using anisotropic kernels", ACM TOG 32(1)).
+
+For every particle i, over its neighbours j within R (the splat support), with the weights
+w_ij = 1 - (|x_ij| / R)^3:
+
+  x_w,i  = sum_j w_ij x_j / sum_j w_ij                       (weighted mean)
+  C_i    = sum_j w_ij (x_j - x_w,i)(x_j - x_w,i)^T / sum_j w_ij  (weighted covariance)
+  x̄_i   = (1 - lambda) x_i + lambda x_h,i                    (Laplacian smoothing of centres)
+
+where x_h,i is the weighted mean over the neighbours within h only (over R it pulls a flat
+surface's particles in by about R / 3). lambda is the caller's: Yu & Turk take 0.9, which on
+the example's first frame pulled every face of the column in by 1.7 r (mesh volume -13 %,
+measured), so surface.center_smoothing is 0 unless a job asks for it.
+
+C_i = U diag(s_1 >= s_2 >= s_3) U^T. The kernel of particle i is stretched along U:
+W(|A_i (x - x̄_i)| / h) det(A_i), A_i = U diag(s_1 / s~_k) U^T, s~_k = max(s_k, s_1 / KR):
+its longest axis is the isotropic support h and no axis is shorter than h / KR. So a
+particle's support always lies inside the isotropic sphere of radius h (the splat's blocks,
+phases and pruning stay as they are); det(A_i) keeps the kernel's integral, so each particle
+still adds its own volume. A flat surface's kernels flatten along the normal (a flat, sharp
+surface instead of the isotropic kernels' bumps); a thin sheet keeps its kernels in its plane.
+A particle with fewer than N_EPS neighbours (spray, a thin filament) takes the isotropic kernel
+shrunk by KN: a small droplet of about its own volume instead of a ball of radius h.
+
+The neighbour search reuses the splat's sort of the particles into cubes of edge 2h.
+"""
+import taichi as ti
+
+from solver.types import F1, I1, V3, ivec3, vec3
+
+RADIUS = 2.0        # the neighbourhood's radius R, in units of the splat support h (their r = 2 h)
+KR = 4.0            # largest ratio of a kernel's axes (Yu & Turk's k_r)
+KN = 0.5            # a lone particle's kernel, in units of h (their k_n)
+N_EPS = 25          # fewer neighbours within R than this: the lone-particle kernel (their N_eps;
+                    # a full neighbourhood within R = 8 r on the fill lattice holds 257)
+# columns of the per-particle table: the symmetric M = A^T A (6 entries) and det(A); a row is
+# one vector (device.empty(ti.f32, n, COLUMNS): numpy (n, 7) on the CPU, a vector ndarray on a GPU)
+M00, M11, M22, M01, M02, M12, DET = range(7)
+COLUMNS = 7
+R7 = ti.types.ndarray(dtype=ti.types.vector(COLUMNS, ti.f32), ndim=1)
+
+
+@ti.func
+def _key(c, half) -> ti.i32:
+    """The key of cube c in the splat's phase-major numbering (splat.k_cube_keys)."""
+    phase = (c.x & 1) * 4 + (c.y & 1) * 2 + (c.z & 1)
+    return phase * (half.x * half.y * half.z) + ((c.x >> 1) * half.y + (c.y >> 1)) * half.z + (c.z >> 1)
+
+
+@ti.kernel
+def k_anisotropy(pos: V3, start: I1, count: I1, origin: vec3, edge: ti.f32, dims: ivec3, half: ivec3,
+                 radius: ti.f32, lam: ti.f32, center: V3, table: R7, neighbours: I1):
+    """center[p] = x̄_p, table[p] = (M, det A) and neighbours[p] = the particles within
+    `radius` (itself included), for the particles `pos` sorted by cube (start/count per key)."""
+    inv_edge = 1.0 / edge
+    for p in pos:
+        x = pos[p]
+        lo = ti.math.clamp(ti.cast(ti.floor((x - radius - origin) * inv_edge), ti.i32), 0, dims - 1)
+        hi = ti.math.clamp(ti.cast(ti.floor((x + radius - origin) * inv_edge), ti.i32), 0, dims - 1)
+        wsum = 0.0
+        m1 = vec3(0.0)                           # sum w d, d = x_j - x_p
+        m2 = ti.Matrix.zero(ti.f32, 3, 3)        # sum w d d^T
+        wsum_h = 0.0                             # the same within h = R / RADIUS, for the centre
+        m1_h = vec3(0.0)
+        n = 0
+        for cx, cy, cz in ti.ndrange((lo.x, hi.x + 1), (lo.y, hi.y + 1), (lo.z, hi.z + 1)):
+            k = _key(ivec3(cx, cy, cz), half)
+            for q in range(start[k], start[k] + count[k]):
+                d = (pos[q] - x) / radius             # in units of the radius: O(1) for the SVD
+                s = d.norm_sqr()
+                if s < 1.0:
+                    t = ti.sqrt(s)
+                    w = 1.0 - t * t * t
+                    wsum += w
+                    m1 += w * d
+                    m2 += w * d.outer_product(d)
+                    n += 1
+                    th = t * RADIUS
+                    if th < 1.0:
+                        wh = 1.0 - th * th * th
+                        wsum_h += wh
+                        m1_h += wh * d
+        mean = m1 / wsum
+        cov = m2 / wsum - mean.outer_product(mean)
+        center[p] = x + lam * radius * m1_h / wsum_h
+        neighbours[p] = n
+        a = ti.Matrix.identity(ti.f32, 3) / KN
+        if n >= N_EPS:
+            u, sig, _v = ti.svd(cov)
+            s1 = ti.max(ti.max(sig[0, 0], sig[1, 1]), ti.max(sig[2, 2], 1e-30))
+            inv_axis = vec3(s1 / ti.max(sig[0, 0], s1 / KR), s1 / ti.max(sig[1, 1], s1 / KR),
+                            s1 / ti.max(sig[2, 2], s1 / KR))
+            a = u @ ti.Matrix([[inv_axis[0], 0.0, 0.0], [0.0, inv_axis[1], 0.0], [0.0, 0.0, inv_axis[2]]]) @ u.transpose()
+        mm = a.transpose() @ a
+        table[p] = ti.Vector([mm[0, 0], mm[1, 1], mm[2, 2], mm[0, 1], mm[0, 2], mm[1, 2], a.determinant()])
+
+
+@ti.func
+def quad(t: ti.template(), p, dx, dy, z):
+    """q = |A_p d|^2 for d = (dx, dy, z) in units of h (z a scalar, or a vector of a row's
+    lanes: then q is too)."""
+    m = t[p]
+    a0 = m[M00] * dx * dx + m[M11] * dy * dy + 2.0 * m[M01] * dx * dy
+    a1 = 2.0 * (m[M02] * dx + m[M12] * dy)
+    return a0 + (a1 + m[M22] * z) * z
+
+
+@ti.kernel
+def k_weigh(vol: F1, table: R7, neighbours: I1, fewest: ti.i32, anisotropic: ti.template()):
+    """vol[p] *= det(A_p) (with `anisotropic`: each kernel keeps its integral); 0 for the
+    particles with fewer than `fewest` neighbours (spray, left out of the field)."""
+    for p in vol:
+        v = vol[p]
+        if ti.static(anisotropic):
+            v *= table[p][DET]
+        vol[p] = ti.select(neighbours[p] >= fewest, v, 0.0)
+
+
+@ti.kernel
+def k_take_rows(order: I1, src: R7, dst: R7):
+    for s in order:
+        dst[s] = src[order[s]]
