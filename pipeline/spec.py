@@ -14,7 +14,7 @@ import os
 import re
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, ClassVar, Literal, Union
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
@@ -222,10 +222,20 @@ MAX_SDF_VOXELS = 1 << 24
 
 # ------------------------------------------------------------------------------------ surface
 class Surface(Strict):
+    # anisotropic: Yu & Turk 2013's stretched kernels (surfacing/anisotropy.py); isotropic: spheres
+    method: Literal["anisotropic", "isotropic"] = "anisotropic"
     cell_size: Annotated[float, Field(gt=0.1, le=4)] = 0.75   # grid spacing, in particle radii
     kernel_radius: Annotated[float, Field(gt=1, le=8)] = 4.0  # splat support, in particle radii
     kernel: Literal["cubic", "poly6", "wendland"] = "cubic"   # splat kernel
-    iso: Annotated[float, Field(gt=0, lt=1)] = 0.5            # color-field iso value
+    # color-field iso value; unset: the method's (ISO), where a resting block's mesh keeps its volume
+    iso: Annotated[float | None, Field(gt=0, lt=1)] = None
+    # particles with fewer neighbours than this within two kernel radii (itself counted) are spray:
+    # written as points (<shot>.<frame>.spray.ply), left out of the mesh; 0: no spray file. The
+    # default is the anisotropic kernels' N_EPS: fewer than that have no shape to stretch
+    spray: Annotated[int, Field(ge=0, le=1000)] = 25
+    # anisotropic: Laplacian smoothing of the kernel centres (Yu & Turk's lambda, 0.9 in the paper;
+    # it shrinks every face by up to 1.7 particle radii, so 0 unless asked for)
+    center_smoothing: Unit = 0.0
     format: Literal["ply", "obj", "vtu"] = "ply"
     per_fluid: bool = False               # one mesh per fluid instead of one for all
     smoothing_iterations: Annotated[int, Field(ge=0, le=200)] = 0   # Taubin smoothing
@@ -233,6 +243,12 @@ class Surface(Strict):
     half_width: Annotated[float, Field(ge=1, le=10)] = 3.0         # level-set narrow band, voxels
     # OpenVDB grids written per frame; none: no .vdb at all (the level set is most of a frame's time)
     grids: tuple[Literal["surface", "density", "velocity"], ...] = ("surface", "density", "velocity")
+
+    ISO: ClassVar[dict[str, float]] = {"isotropic": 0.5, "anisotropic": 0.2}
+
+    @property
+    def iso_value(self) -> float:
+        return self.ISO[self.method] if self.iso is None else self.iso
 
     @field_validator("grids")
     @classmethod
@@ -281,6 +297,9 @@ class Material(Strict):
 
 
 class Render(Strict):
+    # a preset for the keys below that the job leaves unset (render.LOOKS): "water" translucent
+    # and glossy under a sky, "clay" matte grey for reading form, "preview" the opaque blue of old
+    look: Literal["water", "clay", "preview"] = "water"
     mode: Literal["surface", "particles"] = "surface"
     color_by: Literal["fluid", "speed"] = "fluid"
     resolution: tuple[Annotated[int, Field(ge=16, le=8192)], Annotated[int, Field(ge=16, le=8192)]] = (1280, 720)

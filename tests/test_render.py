@@ -27,15 +27,18 @@ MEAN_TOL = 3.0
 OUTLIER_TOL = 0.01
 
 
-def scene(tmp_path, **render):
-    base = {"resolution": (320, 180), "ssaa": False, "background": (0.1, 0.1, 0.12),
-            "background_top": (0.3, 0.34, 0.4), "movie": True, "contact_sheet": True,
+def scene(tmp_path, look: str = "preview", surface: dict | None = None, **render):
+    """The golden scene. With the preview look, its own background (as before looks existed);
+    with another look, the look's background, ground and material."""
+    base = {"look": look, "resolution": (320, 180), "ssaa": False, "movie": True, "contact_sheet": True,
             "camera": {"position": (1.2, 0.8, 1.3), "focal_point": (0.3, 0.15, 0.2), "fov": 40.0},
             "lights": ({"position": (2.0, 3.0, 2.0), "intensity": 1.0},
                        {"position": (-2.0, 1.0, 1.0), "intensity": 0.4})}
+    if look == "preview":
+        base.update(background=(0.1, 0.1, 0.12), background_top=(0.3, 0.34, 0.4))
     base.update(render)
     return ShotSpec.model_validate(tiny_spec(
-        ((0, 0, 0), (0.2, 0.2, 0.2)), ((0, 0, 0), (0.6, 0.4, 0.4)), name="golden",
+        ((0, 0, 0), (0.2, 0.2, 0.2)), ((0, 0, 0), (0.6, 0.4, 0.4)), name="golden", surface=surface or {},
         shot={"frame_start": 1, "frame_end": 3, "output": str(tmp_path)},
         fluid={"name": "water", "color": (0.2, 0.45, 0.85)},
         colliders=({"type": "box", "min": (0.45, 0.0, 0.1), "max": (0.55, 0.1, 0.3)},), render=base))
@@ -108,6 +111,24 @@ def test_surface_golden_headless(tmp_path):
     compare("surface_f2", paths.render_frame(2))
     img = np.asarray(Image.open(paths.render_frame(2)))
     assert img.shape == (180, 320, 3)
+
+
+@pytest.mark.parametrize("look", ["water", "clay"])
+def test_looks_golden(tmp_path, look):
+    """Each render.look on the synthetic sphere, with spray points beside it (the surface
+    stage's spray file): the look's own background, ground and material (the scene's background
+    keys are dropped so the look sets them). The water look draws the sphere translucent: the
+    box collider behind it shows through."""
+    from pipeline.formats import write_points
+    from pipeline.stages import render
+
+    spec = scene(tmp_path, look=look, surface={"spray": 25})
+    paths = synthetic_meshes(spec, [2])
+    rng = np.random.default_rng(2)
+    write_points(paths.surface_spray(2), (rng.random((40, 3)) * [0.1, 0.1, 0.1] + [0.35, 0.25, 0.15]).astype(np.float32),
+                 np.zeros((40, 3), np.float32), 0.004)
+    render.run(spec, [2], paths, quiet())
+    compare(f"look_{look}_f2", paths.render_frame(2))
 
 
 def test_particles_golden_colored_by_speed(tmp_path):

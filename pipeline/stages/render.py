@@ -17,13 +17,47 @@ import numpy as np
 
 from ..cache import atomic_path
 from ..errors import StageError
-from ..formats import read_frame, read_mesh
+from ..formats import read_frame, read_mesh, read_points
 
 log = logging.getLogger("sphshot")
 
 # zlib level for every PNG written. Lossless at any level; Pillow's default (6) took 77 ms for a
 # 960x540 frame of the example shot and 3 takes 38 ms for a file 14% larger (1: 31 ms, +24%).
 PNG_LEVEL = 3
+
+
+# What a look sets, where the job leaves the key unset (render.look). Shading "phong": a glossy
+# highlight that reads as wet (VTK's PBR needs an environment map for its reflections, and
+# prefiltering one took over a minute a frame with Mesa's software GL); "pbr": as before.
+# Translucency without depth peeling: with Mesa's llvmpipe, peeling left a translucent mesh
+# out of the image altogether (measured), and plain alpha blending draws it.
+LOOKS = {
+    "water": {"background": (0.66, 0.73, 0.80), "background_top": (0.20, 0.34, 0.55), "domain": False,
+              "ground_color": (0.70, 0.69, 0.66), "ground_size": 60.0, "shading": "phong", "opacity": 0.65,
+              "specular": 1.0, "specular_power": 60.0, "ambient": 0.3, "diffuse": 0.55,
+              "tint": (0.62, 0.80, 0.88), "spray_color": (0.93, 0.97, 1.0)},
+    "clay": {"background": (0.55, 0.55, 0.56), "background_top": (0.28, 0.29, 0.31), "domain": False,
+             "ground_color": (0.62, 0.61, 0.59), "ground_size": 60.0, "shading": "phong", "opacity": 1.0,
+             "specular": 0.08, "specular_power": 10.0, "ambient": 0.25, "diffuse": 0.8,
+             "color": (0.80, 0.78, 0.74), "spray_color": (0.80, 0.78, 0.74)},
+    "preview": {"background": (0.08, 0.09, 0.11), "background_top": (0.32, 0.36, 0.42), "domain": True,
+                "ground_color": (0.42, 0.42, 0.44), "ground_size": 3.0, "shading": "pbr", "opacity": None,
+                "spray_color": (0.85, 0.9, 1.0)},
+}
+
+
+def look_of(render) -> dict:
+    """The look's settings, with the job's own keys (background, background_top, domain,
+    material) where it sets them."""
+    look = dict(LOOKS[render.look])
+    for key in ("background", "background_top", "domain"):
+        if key in render.model_fields_set:
+            look[key] = getattr(render, key)
+    mat = render.material
+    if "material" in render.model_fields_set or look["shading"] == "pbr":
+        look.update(shading="pbr", color=mat.color, opacity=mat.opacity, roughness=mat.roughness,
+                    metallic=mat.metallic)
+    return look
 
 
 def _offscreen_env() -> None:
@@ -60,15 +94,16 @@ class FrameRenderer:
         self.pv = pv
         self.spec = spec
         r = spec.render
+        self.look = look = look_of(r)
         pl = pv.Plotter(off_screen=True, window_size=list(r.resolution), lighting="none")
-        if r.background_top is not None:
-            pl.set_background(r.background, top=r.background_top)
+        if look["background_top"] is not None:
+            pl.set_background(look["background"], top=look["background_top"])
         else:
-            pl.set_background(r.background)
+            pl.set_background(look["background"])
         self._lights(pl)
         if r.ground:
             self._ground(pl)
-        if r.domain:
+        if look["domain"]:
             lo, hi = spec.domain.min, spec.domain.max
             box = pv.Box(bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])).outline()
             pl.add_mesh(box, color=(0.78, 0.8, 0.84), line_width=1.5, lighting=False)
@@ -78,8 +113,6 @@ class FrameRenderer:
                             smooth_shading=col.type != "box")   # a box keeps its hard edges
         if r.ssaa:
             pl.enable_anti_aliasing("ssaa")
-        if r.material.opacity < 1.0:
-            pl.enable_depth_peeling(number_of_peels=8)
         self.pl = pl
         self.fluid_actors = []
 
@@ -100,12 +133,17 @@ class FrameRenderer:
             pl.add_light(light)
 
     def _ground(self, pl) -> None:
+        """A floor under the domain: with the water and clay looks wide enough that its edges lie
+        at the horizon, not across the frame."""
         lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
         centre = 0.5 * (lo + hi)
-        size = (hi - lo) * 3.0
+        size = (hi - lo) * self.look["ground_size"]
         plane = self.pv.Plane(center=(centre[0], lo[1] - 1e-4, centre[2]), direction=(0, 1, 0),
                               i_size=size[0], j_size=size[2])
-        pl.add_mesh(plane, color=(0.42, 0.42, 0.44), pbr=True, roughness=0.9, metallic=0.0)
+        if self.look["shading"] == "pbr":
+            pl.add_mesh(plane, color=self.look["ground_color"], pbr=True, roughness=0.9, metallic=0.0)
+        else:
+            pl.add_mesh(plane, color=self.look["ground_color"], ambient=0.3, diffuse=0.75, specular=0.0)
 
     def _fluid_meshes(self, frame: int, paths):
         pv, spec = self.pv, self.spec
@@ -126,7 +164,7 @@ class FrameRenderer:
                           point_size=max(2.0, self._pixels_per_metre() * 2 * spec.sim.particle_radius))
             return out
 
-        mat = spec.render.material
+        look = self.look
         for key, path in paths.surface_meshes(frame).items():
             m = read_mesh(path)
             if len(m.faces) == 0:
@@ -134,10 +172,22 @@ class FrameRenderer:
             poly = pv.PolyData.from_regular_faces(m.points, m.faces)
             poly.point_data["Normals"] = m.normals
             poly.point_data.active_normals_name = "Normals"
-            color = mat.color or (spec.fluids[[f.name for f in spec.fluids].index(key)].color
-                                   if key is not None else spec.fluids[0].color)
-            out.append((poly, dict(color=color, pbr=True, metallic=mat.metallic, roughness=mat.roughness,
-                                   opacity=mat.opacity, smooth_shading=True)))
+            color = look.get("color") or (spec.fluids[[f.name for f in spec.fluids].index(key)].color
+                                          if key is not None else spec.fluids[0].color)
+            if "tint" in look:          # water: the fluid's color, half way to clear water's
+                color = tuple(0.5 * (a + b) for a, b in zip(color, look["tint"]))
+            if look["shading"] == "pbr":
+                kw = dict(pbr=True, metallic=look["metallic"], roughness=look["roughness"])
+            else:
+                kw = {k: look[k] for k in ("specular", "specular_power", "ambient", "diffuse")}
+            out.append((poly, dict(color=color, opacity=look["opacity"], smooth_shading=True, **kw)))
+        spray = paths.surface_spray(frame)
+        if spray.exists():
+            pts = read_points(spray)["position"]
+            if len(pts):            # fine droplets: a particle's diameter on screen, at least 2 px
+                size = max(2.0, 0.8 * self._pixels_per_metre() * 2 * spec.sim.particle_radius)
+                out.append((pv.PolyData(pts), dict(color=look["spray_color"], render_points_as_spheres=True,
+                                                   point_size=size, ambient=0.5)))
         return out
 
     def _pixels_per_metre(self) -> float:
