@@ -13,9 +13,11 @@ splashsurf computes its own densities (included in its time). splashsurf runs in
 (its wheel wants NumPy 2; pyopenvdb needs NumPy 1) as a child process; sphshot also runs in a
 child, so both peak memories are per process. Timings are medians of --repeat runs after a
 warm-up; the two sides alternate for --rounds rounds and the ratio is the median round's.
-sphshot runs twice: "mesh" makes what splashsurf makes (the mesh, no velocities; the
-comparison); "full" makes what the surface stage makes (velocity field and vertex
-velocities too), then times the VDB grids separately.
+sphshot runs three times: "mesh" makes what splashsurf makes (the mesh, no velocities; the
+comparison); "aniso" the same with the anisotropic kernels (the surface stage's default method;
+splashsurf has none: target at most 2x splashsurf's isotropic time at 500k); "full" makes what
+the surface stage makes with isotropic kernels (velocity field and vertex velocities too), then
+times the VDB grids separately.
 
     .venv/bin/python bench/surface.py --sizes 50k          # ~1 min
     .venv/bin/python bench/surface.py --sizes 50k,500k     # ~4 min
@@ -60,6 +62,7 @@ def child_sphshot(path: str, repeat: int, vdb_dir: str, mode: str) -> None:
     from solver.backend import init_taichi
     init_taichi("cpu", 0)
     from surfacing import vdb
+    from pipeline.spec import Surface
     from surfacing.reconstruct import color_field, marching_cubes
 
     P = np.load(path).astype(np.float32)
@@ -67,17 +70,19 @@ def child_sphshot(path: str, repeat: int, vdb_dir: str, mode: str) -> None:
     vol = np.full(len(P), (2 * R) ** 3, np.float32)
     # compile and warm up every Taichi kernel (splat and marching cubes) on a small frame, so
     # that neither the times nor the peak memory include the JIT compiler
+    aniso = mode == "aniso"              # the anisotropic kernels (the surface stage's default), mesh alone
+    iso = Surface.ISO["anisotropic"] if aniso else ISO
     marching_cubes(color_field(P[:2000], vel[:2000], vol[:2000], CUBE * R, SUPPORT * R, ISO), ISO)
-    marching_cubes(color_field(P[:2000], None, vol[:2000], CUBE * R, SUPPORT * R, ISO), ISO)
+    marching_cubes(color_field(P[:2000], None, vol[:2000], CUBE * R, SUPPORT * R, iso, anisotropic=aniso), iso)
 
     def timed(v):
         times, field, mesh = [], None, None
         for _ in range(repeat):
             field = mesh = None          # peak memory is that of one reconstruction, not two
             t0 = time.perf_counter()
-            field = color_field(P, v, vol, CUBE * R, SUPPORT * R, ISO)
+            field = color_field(P, v, vol, CUBE * R, SUPPORT * R, iso, anisotropic=aniso)
             t1 = time.perf_counter()
-            mesh = marching_cubes(field, ISO)
+            mesh = marching_cubes(field, iso)
             t2 = time.perf_counter()
             times.append((t2 - t0, t1 - t0, t2 - t1))
         return sorted(times)[len(times) // 2], field, mesh
@@ -128,7 +133,6 @@ def ensure_splash_venv() -> Path:
 
 
 def run_child(cmd, env=None) -> dict:
-    t0 = os.times()
     proc = subprocess.run(["/usr/bin/time", "-v", *cmd], capture_output=True, text=True, env=env, cwd=ROOT)
     m = re.search(r"^RESULT (\{.*\})$", proc.stdout, re.M)
     if proc.returncode != 0 or not m:
@@ -161,19 +165,22 @@ def main() -> None:
         for n in range(args.rounds):
             ours = run_child([sys.executable, __file__, "--child", str(path), str(args.repeat), str(work), "mesh"])
             ref = run_child([str(splash_py), "-c", SPLASH_CHILD, str(path), str(args.repeat)])
-            rounds.append((ours, ref))
-            print(f"{size:5s} round {n + 1}: sphshot {ours['mesh_s']} s, splashsurf {ref['mesh_s']} s, "
-                  f"x{ours['mesh_s'] / ref['mesh_s']:.2f}", flush=True)
+            aniso = run_child([sys.executable, __file__, "--child", str(path), str(args.repeat), str(work), "aniso"])
+            rounds.append((ours, ref, aniso))
+            print(f"{size:5s} round {n + 1}: sphshot {ours['mesh_s']} s (anisotropic {aniso['mesh_s']} s), "
+                  f"splashsurf {ref['mesh_s']} s, x{ours['mesh_s'] / ref['mesh_s']:.2f} "
+                  f"(anisotropic x{aniso['mesh_s'] / ref['mesh_s']:.2f})", flush=True)
         full = run_child([sys.executable, __file__, "--child", str(path), str(args.repeat), str(work), "full"])
         mid = sorted(range(len(rounds)), key=lambda n: rounds[n][0]["mesh_s"] / rounds[n][1]["mesh_s"])
-        ours, ref = rounds[mid[len(mid) // 2]]                       # the median round
-        for r in (ours, full, ref):
+        ours, ref, aniso = rounds[mid[len(mid) // 2]]                # the median round
+        for r in (ours, aniso, full, ref):
             print(f"{size:5s} {r['method']:14s} " + " ".join(f"{k}={v}" for k, v in r.items() if k != "method"))
         print(f"RATIO {size}: sphshot mesh time x{ours['mesh_s'] / ref['mesh_s']:.2f} of splashsurf's "
               f"(>1 is slower; the median of {len(rounds)} rounds), peak memory "
               f"x{ours['peak_rss_mb'] / ref['peak_rss_mb']:.2f}, triangles x{ours['tris'] / ref['tris']:.2f}; "
               f"with velocities {full['mesh_s']} s (x{full['mesh_s'] / ref['mesh_s']:.2f}), "
-              f"then VDB writing {full['vdb_s']} s")
+              f"then VDB writing {full['vdb_s']} s; anisotropic kernels x{aniso['mesh_s'] / ref['mesh_s']:.2f} "
+              f"(target <= x2), peak memory x{aniso['peak_rss_mb'] / ref['peak_rss_mb']:.2f}")
 
 
 if __name__ == "__main__":
