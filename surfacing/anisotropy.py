@@ -23,7 +23,7 @@ surface instead of the isotropic kernels' bumps); a thin sheet keeps its kernels
 A particle with fewer than N_EPS neighbours (spray, a thin filament) takes the isotropic kernel
 shrunk by KN: a small droplet of about its own volume instead of a ball of radius h.
 
-The neighbour search reuses the splat's sort of the particles into cubes of edge 2h.
+The neighbour search sorts the particles into cells of edge h (splat.sort_by_cell).
 """
 import taichi as ti
 
@@ -41,49 +41,51 @@ COLUMNS = 7
 R7 = ti.types.ndarray(dtype=ti.types.vector(COLUMNS, ti.f32), ndim=1)
 
 
-@ti.func
-def _key(c, half) -> ti.i32:
-    """The key of cube c in the splat's phase-major numbering (splat.k_cube_keys)."""
-    phase = (c.x & 1) * 4 + (c.y & 1) * 2 + (c.z & 1)
-    return phase * (half.x * half.y * half.z) + ((c.x >> 1) * half.y + (c.y >> 1)) * half.z + (c.z >> 1)
-
-
 @ti.kernel
-def k_anisotropy(pos: V3, start: I1, count: I1, origin: vec3, edge: ti.f32, dims: ivec3, half: ivec3,
-                 radius: ti.f32, lam: ti.f32, center: V3, table: R7, neighbours: I1):
-    """center[p] = x̄_p, table[p] = (M, det A) and neighbours[p] = the particles within
-    `radius` (itself included), for the particles `pos` sorted by cube (start/count per key)."""
+def k_anisotropy(pos: V3, start: I1, count: I1, origin: vec3, edge: ti.f32, dims: ivec3,
+                 radius: ti.f32, lam: ti.f32, center: V3, table: R7, neighbours: I1, smooth: ti.template()):
+    """center[p] = x̄_p (with `smooth`; else x_p), table[p] = (M, det A) and neighbours[p] = the
+    particles within `radius` (itself included), for the particles `pos` sorted by cells of
+    `edge` numbered row by row (splat.sort_by_cell: start/count per cell; a row along z is one
+    run). The candidate loop has no branch: a candidate beyond the radius weighs 0."""
     inv_edge = 1.0 / edge
+    inv_r = 1.0 / radius
     for p in pos:
         x = pos[p]
         lo = ti.math.clamp(ti.cast(ti.floor((x - radius - origin) * inv_edge), ti.i32), 0, dims - 1)
         hi = ti.math.clamp(ti.cast(ti.floor((x + radius - origin) * inv_edge), ti.i32), 0, dims - 1)
         wsum = 0.0
-        m1 = vec3(0.0)                           # sum w d, d = x_j - x_p
-        m2 = ti.Matrix.zero(ti.f32, 3, 3)        # sum w d d^T
+        m1 = vec3(0.0)                           # sum w d, d = (x_j - x_p) / R: O(1) for the SVD
+        c0 = vec3(0.0)                           # sum w d d^T: the diagonal
+        c1 = vec3(0.0)                           # and (xy, xz, yz)
         wsum_h = 0.0                             # the same within h = R / RADIUS, for the centre
         m1_h = vec3(0.0)
         n = 0
-        for cx, cy, cz in ti.ndrange((lo.x, hi.x + 1), (lo.y, hi.y + 1), (lo.z, hi.z + 1)):
-            k = _key(ivec3(cx, cy, cz), half)
-            for q in range(start[k], start[k] + count[k]):
-                d = (pos[q] - x) / radius             # in units of the radius: O(1) for the SVD
+        for cx, cy in ti.ndrange((lo.x, hi.x + 1), (lo.y, hi.y + 1)):
+            k0 = (cx * dims.y + cy) * dims.z + lo.z
+            k1 = (cx * dims.y + cy) * dims.z + hi.z
+            for q in range(start[k0], start[k1] + count[k1]):
+                d = (pos[q] - x) * inv_r
                 s = d.norm_sqr()
-                if s < 1.0:
-                    t = ti.sqrt(s)
-                    w = 1.0 - t * t * t
-                    wsum += w
-                    m1 += w * d
-                    m2 += w * d.outer_product(d)
-                    n += 1
-                    th = t * RADIUS
-                    if th < 1.0:
-                        wh = 1.0 - th * th * th
-                        wsum_h += wh
-                        m1_h += wh * d
+                t = ti.sqrt(ti.min(s, 1.0))
+                w = 1.0 - t * t * t
+                wd = w * d
+                wsum += w
+                m1 += wd
+                c0 += wd * d
+                c1 += vec3(wd.x * d.y, wd.x * d.z, wd.y * d.z)
+                n += ti.select(s < 1.0, 1, 0)
+                if ti.static(smooth):
+                    th = ti.min(t * RADIUS, 1.0)
+                    wh = 1.0 - th * th * th
+                    wsum_h += wh
+                    m1_h += wh * d
         mean = m1 / wsum
-        cov = m2 / wsum - mean.outer_product(mean)
-        center[p] = x + lam * radius * m1_h / wsum_h
+        cov = ti.Matrix([[c0.x, c1.x, c1.y], [c1.x, c0.y, c1.z], [c1.y, c1.z, c0.z]]) / wsum - mean.outer_product(mean)
+        c = x
+        if ti.static(smooth):
+            c = x + lam * radius * m1_h / wsum_h
+        center[p] = c
         neighbours[p] = n
         a = ti.Matrix.identity(ti.f32, 3) / KN
         if n >= N_EPS:

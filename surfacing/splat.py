@@ -314,6 +314,32 @@ def sort_by_cube(positions, origin: np.ndarray, top: np.ndarray, support: float)
     return order, start, count, per_phase
 
 
+@ti.kernel
+def k_cell_keys(pos: V3, origin: vec3, inv: ti.f32, dims: ivec3, key: I1, count: I1):
+    """key[p]: particle p's cell, numbered x, then y, then z (a row along z is contiguous)."""
+    for p in pos:
+        c = ti.math.clamp(ti.cast(ti.floor((pos[p] - origin) * inv), ti.i32), 0, dims - 1)
+        k = (c.x * dims.y + c.y) * dims.z + c.z
+        key[p] = k
+        ti.atomic_add(count[k], 1)
+
+
+def sort_by_cell(positions, origin: np.ndarray, top: np.ndarray, edge: float):
+    """(order, start, count, dims): the particles counting-sorted by cells of `edge` numbered
+    row by row, each cell's run in increasing particle index (so that sums over neighbours
+    add in the same order on every run and backend)."""
+    n = positions.shape[0]
+    dims = [int(v) + 1 for v in np.floor((top - origin) / edge)]
+    cells = math.prod(dims)
+    key, count = D.empty(ti.i32, n), D.zeros(ti.i32, cells)
+    k_cell_keys(positions, vec3(*map(float, origin)), 1.0 / edge, ivec3(*dims), key, count)
+    start, _ = D.exclusive_scan(count, cells)
+    order = D.empty(ti.i32, n)
+    k_place(key, start, D.zeros(ti.i32, cells), order)
+    k_sort_runs(start, count, order)
+    return order, start, count, dims
+
+
 def mark_blocks(pos, base_block: np.ndarray, shape: tuple, origin: np.ndarray, cell: float, support: float):
     """(lookup, blocks): the blocks the particles' supports reach. lookup: int32 array of
     `shape`, block id or -1; blocks: (nb, 3) block coordinates in lookup order (x, y, z
@@ -384,16 +410,22 @@ class Splat:
     def _anisotropy(self, raw, vol, top, spray_below: int):
         """Sort by cube, then per particle its neighbour count (spray), and with `anisotropic`
         its smoothed centre and kernel (surfacing/anisotropy.py). Returns (positions, volumes)
-        in the sorted order, the centres for positions where anisotropic."""
-        pos, vol, _ = self._sorted(raw, vol, top)
-        edge = 2.0 * self.support
-        dims = [int(v) + 1 for v in np.floor((top - self.origin) / edge)]
-        half = [(d + 1) // 2 for d in dims]
+        in the sorted order, the centres for positions where anisotropic. The neighbour search
+        sorts by cells of edge h numbered row by row (sort_by_cell): a row of cells along z is
+        one run of particles. At 500k particles k_anisotropy takes 0.84 s on 2 cores (over the
+        scatter's 2h cubes, numbered phase by phase, 1.45 s; cells of edge h numbered that way,
+        2.56 s; cells of 2h or 2h/3 row by row, 0.85 and 1.12 s)."""
+        edge = self.support
+        order, start, count, dims = sort_by_cell(raw, self.origin, top, edge)
+        pos, sorted_vol = D.empty(ti.f32, self.n, 3), D.empty(ti.f32, self.n)
+        k_take_v3(order, raw, pos)
+        k_take_f1(order, vol, sorted_vol)
+        vol, self.order = sorted_vol, order
         center, table = D.empty(ti.f32, self.n, 3), D.empty(ti.f32, self.n, A.COLUMNS)
         neighbours = D.empty(ti.i32, self.n)
-        A.k_anisotropy(pos, self.start, self.count, vec3(*map(float, self.origin)), edge, ivec3(*dims),
-                       ivec3(*half), A.RADIUS * self.support, self.center_smoothing if self.anisotropic else 0.0, center, table,
-                       neighbours)
+        A.k_anisotropy(pos, start, count, vec3(*map(float, self.origin)), edge, ivec3(*dims),
+                       A.RADIUS * self.support, self.center_smoothing, center, table, neighbours,
+                       self.anisotropic and self.center_smoothing > 0)
         A.k_weigh(vol, table, neighbours, spray_below, self.anisotropic)
         if spray_below > 0:
             few = D.host(neighbours) < spray_below
