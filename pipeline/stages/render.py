@@ -33,11 +33,11 @@ PNG_LEVEL = 3
 # out of the image altogether (measured), and plain alpha blending draws it.
 LOOKS = {
     "water": {"background": (0.66, 0.73, 0.80), "background_top": (0.20, 0.34, 0.55), "domain": False,
-              "ground_color": (0.70, 0.69, 0.66), "ground_size": 60.0, "shading": "phong", "opacity": 0.65,
+              "ground_color": (0.50, 0.52, 0.54), "ground_size": 30.0, "shading": "phong", "opacity": 0.65,
               "specular": 1.0, "specular_power": 60.0, "ambient": 0.3, "diffuse": 0.55,
               "tint": (0.62, 0.80, 0.88), "spray_color": (0.93, 0.97, 1.0)},
     "clay": {"background": (0.55, 0.55, 0.56), "background_top": (0.28, 0.29, 0.31), "domain": False,
-             "ground_color": (0.62, 0.61, 0.59), "ground_size": 60.0, "shading": "phong", "opacity": 1.0,
+             "ground_color": (0.42, 0.42, 0.43), "ground_size": 30.0, "shading": "phong", "opacity": 1.0,
              "specular": 0.08, "specular_power": 10.0, "ambient": 0.25, "diffuse": 0.8,
              "color": (0.80, 0.78, 0.74), "spray_color": (0.80, 0.78, 0.74)},
     "preview": {"background": (0.08, 0.09, 0.11), "background_top": (0.32, 0.36, 0.42), "domain": True,
@@ -133,17 +133,26 @@ class FrameRenderer:
             pl.add_light(light)
 
     def _ground(self, pl) -> None:
-        """A floor under the domain: with the water and clay looks wide enough that its edges lie
-        at the horizon, not across the frame."""
+        """A floor under the domain. With the water and clay looks it has no edge in the frame:
+        wide, unlit, and fading from the ground color around the domain to the background's
+        bottom color (a studio cyclorama), so it meets the background without a seam."""
         lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
         centre = 0.5 * (lo + hi)
-        size = (hi - lo) * self.look["ground_size"]
+        look = self.look
+        size = (hi - lo) * look["ground_size"]
+        if look["shading"] == "pbr":
+            plane = self.pv.Plane(center=(centre[0], lo[1] - 1e-4, centre[2]), direction=(0, 1, 0),
+                                  i_size=size[0], j_size=size[2])
+            pl.add_mesh(plane, color=look["ground_color"], pbr=True, roughness=0.9, metallic=0.0)
+            return
         plane = self.pv.Plane(center=(centre[0], lo[1] - 1e-4, centre[2]), direction=(0, 1, 0),
-                              i_size=size[0], j_size=size[2])
-        if self.look["shading"] == "pbr":
-            pl.add_mesh(plane, color=self.look["ground_color"], pbr=True, roughness=0.9, metallic=0.0)
-        else:
-            pl.add_mesh(plane, color=self.look["ground_color"], ambient=0.3, diffuse=0.75, specular=0.0)
+                              i_size=size[0], j_size=size[2], i_resolution=96, j_resolution=96)
+        reach = float(np.linalg.norm(hi - lo))
+        dist = np.linalg.norm((np.asarray(plane.points) - centre)[:, [0, 2]], axis=1)
+        t = np.clip((dist - 0.6 * reach) / (2.5 * reach), 0.0, 1.0)[:, None] ** 0.7
+        rgb = (1 - t) * np.asarray(look["ground_color"]) + t * np.asarray(look["background"])
+        plane.point_data["rgb"] = (rgb * 255).astype(np.uint8)
+        pl.add_mesh(plane, scalars="rgb", rgb=True, lighting=False)
 
     def _fluid_meshes(self, frame: int, paths):
         pv, spec = self.pv, self.spec
