@@ -138,10 +138,14 @@ class Domain(Strict):
     max: Vec3 = (1.0, 1.0, 1.0)
     restitution: Unit = 0.0
     friction: Unit = 0.1
+    # faces with no wall: particles that leave through one are removed (and counted in the log)
+    open: tuple[Literal["-x", "+x", "-y", "+y", "-z", "+z"], ...] = ()
 
     @model_validator(mode="after")
     def _extent(self):
         _check_extent(self.min, self.max)
+        if len(set(self.open)) != len(self.open):
+            raise ValueError(f"open: each face at most once, got {list(self.open)}")
         return self
 
 

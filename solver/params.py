@@ -64,6 +64,7 @@ class SolverParams:
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
     domain_min: tuple[float, float, float] = (0.0, 0.0, 0.0)
     domain_max: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    open_faces: tuple[str, ...] = ()            # "-x" ... "+z": faces with no wall
     domain_restitution: float = 0.0
     domain_friction: float = 0.1
     colliders: tuple[Collider, ...] = ()

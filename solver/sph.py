@@ -136,7 +136,8 @@ class SPHSolver:
         if self._lists_from_ref:
             self.ref.from_numpy(state["position_ref"].astype(np.float32))
         self._lists_valid = False
-        self.box = Box(lo=vec3(*params.domain_min), hi=vec3(*params.domain_max),
+        lo, hi = open_box(params)
+        self.box = Box(lo=vec3(*lo), hi=vec3(*hi),
                        restitution=params.domain_restitution, friction=params.domain_friction,
                        keep=self.KEEP * params.particle_radius)
         self.consts = Consts(h=h, gravity=vec3(*params.gravity), gamma=params.gamma,
@@ -385,6 +386,30 @@ class SPHSolver:
 
     def controller(self) -> dict[str, float]:
         return {"time": self.time, "step": self.steps, "dt_prev": self.dt_prev}
+
+
+OPEN_FAR = 1e6     # m: where an open face's wall goes (no wall samples, no collision)
+
+
+def open_box(params: SolverParams) -> tuple[list[float], list[float]]:
+    """The walls' box: the domain, with each open face moved out of reach."""
+    lo, hi = list(params.domain_min), list(params.domain_max)
+    for face in params.open_faces:
+        ax = "xyz".index(face[1])
+        if face[0] == "-":
+            lo[ax] = -OPEN_FAR
+        else:
+            hi[ax] = OPEN_FAR
+    return lo, hi
+
+
+def left_through_open_faces(params: SolverParams, position: np.ndarray) -> np.ndarray:
+    """Mask of the particles outside the domain past an open face."""
+    out = np.zeros(len(position), bool)
+    for face in params.open_faces:
+        ax = "xyz".index(face[1])
+        out |= position[:, ax] < params.domain_min[ax] if face[0] == "-" else position[:, ax] > params.domain_max[ax]
+    return out
 
 
 def _ndarray(a: np.ndarray):

@@ -56,6 +56,7 @@ def solver_params(spec) -> SolverParams:
         fluids=tuple(fluid(spec, fi) for fi in range(len(spec.fluids))),
         speed_of_sound=sim.speed_of_sound or 10.0 * spec.expected_max_speed(),
         gravity=tuple(sim.gravity), domain_min=tuple(spec.domain.min), domain_max=tuple(spec.domain.max),
+        open_faces=tuple(spec.domain.open),
         domain_restitution=spec.domain.restitution, domain_friction=spec.domain.friction,
         colliders=tuple(colliders), gamma=sim.gamma, cfl=sim.cfl, max_dt=sim.max_dt,
         surface_threshold=sim.surface_threshold, surface_tension_model=sim.surface_tension_model,
@@ -192,6 +193,26 @@ class BackgroundWriter:
             self._pool.shutdown(wait=True)
 
 
+def remove_leaving(spec, params: SolverParams, solver, frame: int):
+    """The solver without the particles that have left through an open face of the domain (a
+    new solver on the rest of the state, same clock), and the count in the log."""
+    from solver.sph import left_through_open_faces
+
+    state = solver.state()
+    gone = left_through_open_faces(params, state["position"])
+    if not gone.any():
+        return solver
+    if gone.all():
+        raise StageError(f"frame {frame:04d}: sim: every particle has left the domain through its open "
+                         f"face(s) {', '.join(params.open_faces)}")
+    c = solver.controller()
+    kept = make_solver(spec, params, {k: v[~gone] for k, v in state.items()}, time_s=c["time"], step=c["step"],
+                       dt_prev=c["dt_prev"])
+    log.info("sim: frame %04d: %d particle(s) left through the open face(s) %s and were removed; %d remain",
+             frame, int(gone.sum()), " ".join(params.open_faces), kept.n)
+    return kept
+
+
 def write_checkpoint(paths, frame: int, solver, stage_hash: str, writer: BackgroundWriter | None = None) -> None:
     """The solver's state (read from the device now), written now or by `writer`, and stamped
     with the sim's parameter hash: a resume takes only checkpoints made with the current
@@ -249,9 +270,11 @@ def run(spec, frames, paths, progress) -> None:
                 write_checkpoint(paths, frame - 1, solver, stage_hash)
                 raise Interrupted(f"sim: stopped by {_STOP['signal']} during frame {frame:04d}; "
                                   f"checkpoint written, run again to resume")
+            report = solver.frame_report()
+            if params.open_faces:
+                solver = remove_leaving(spec, params, solver, frame)
             data = solver.snapshot()
             check_stable(spec, params, frame, data)
-            report = solver.frame_report()
             log_frame(frame, report)
             if frame in todo or not paths.sim_frame(frame).exists():
                 # written beside the next frame's steps; stamped and reported once on disk
