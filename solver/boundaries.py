@@ -10,7 +10,7 @@ import numpy as np
 import taichi as ti
 
 from .params import BOX, C_FRIC, C_REST, C_SIGN, MESH, SPHERE, SolverParams
-from .types import F1, F2, I1, V3, Box, ivec3, vec3
+from .types import F1, F2, I1, V3, box_of, ivec3, vec3
 
 
 @ti.func
@@ -282,9 +282,9 @@ def collide_one(x0, v0, box: ti.template(), ctype: ti.template(), cprm: ti.templ
 
 
 @ti.kernel
-def k_collide(position: V3, velocity: V3, box: Box, ctype: I1, cprm: F2, sdf: F1):
-    """collide_one for every particle."""
+def k_collide(position: V3, velocity: V3, prm: F1, ctype: I1, cprm: F2, sdf: F1):
+    """collide_one for every particle (`prm`: the constants, types.box_of)."""
     for i in position:
-        x, v = collide_one(position[i], velocity[i], box, ctype, cprm, sdf)
+        x, v = collide_one(position[i], velocity[i], box_of(prm), ctype, cprm, sdf)
         position[i] = x
         velocity[i] = v

@@ -39,7 +39,7 @@ from .errors import Unstable
 from .neighbours import k_gather_f1
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
 from .sph import SPHSolver
-from .types import F1, F2, F4, I1, V3, Box, Consts, ivec2, raise_max, vec3
+from .types import F1, F2, F4, I1, P_H, V3, box_of, consts_of, ivec2, raise_max, vec3
 from .wcsph import color_tension, morris
 
 # A particle with fewer neighbours than this is at a free surface and takes no part in the
@@ -65,12 +65,14 @@ SPEED_FLOOR = 0.25
 @ti.kernel
 def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, alpha: F1, wall_grad: V3,
                      verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
-                     c: Consts, box: Box, ftab: F2, ghost_t: F4, ghost_g: F4,
+                     prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4,
                      ctype: I1, cprm: F2, sdf: F1, kern: ti.template()):
     """Number density delta_i = sum_j W_ij + sum_b W_ib, density m_i delta_i and the factor
-    alpha_i; copies the Verlet entries now within h into `near`, as the WCSPH density pass."""
-    h = c.h
+    alpha_i; copies the Verlet entries now within h into `near`, as the WCSPH density pass.
+    `prm`: the constants (types.consts_of, box_of)."""
+    h = prm[P_H]
     for i in position:
+        c, box = consts_of(prm), box_of(prm)
         xi = position[i]
         s = K.w_r2(kern, 0.0, h)
         grad_sum = vec3(0.0)
@@ -129,10 +131,11 @@ def k_divergence_kappa(position: V3, velocity: V3, near: I1, near_count: I1, lay
 
 @ti.kernel
 def k_density_kappa(position: V3, velocity: V3, number_density: F1, near: I1, near_count: I1, lay: ivec2,
-                    alpha: F1, wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32, c: Consts, kern: ti.template()):
+                    alpha: F1, wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32, prm: F1, kern: ti.template()):
     """kappa_i = alpha_i max(delta*_i - delta0, 0) / dt^2 with delta* = delta + dt D delta / Dt;
     residual[i] the compression delta* - delta0 (clamped at 0)."""
     for i in position:
+        c = consts_of(prm)
         rate = density_rate(i, velocity, position, near, near_count, lay, wall_grad, c.h, kern)
         excess = ti.max(number_density[i] + dt * rate - c.lattice, 0.0)
         kappa[i] = alpha[i] * excess / (dt * dt)
@@ -180,7 +183,7 @@ def k_scale(a: F1, factor: ti.f32):
 
 @ti.kernel
 def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
-                  near: I1, near_count: I1, lay: ivec2, c: Consts, ftab: F2, stats: F1, dt_guess: ti.f32,
+                  near: I1, near_count: I1, lay: ivec2, prm: F1, ftab: F2, stats: F1, dt_guess: ti.f32,
                   normal: V3, kern: ti.template(), tension: ti.template()):
     """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
     raised to the largest |v + a dt_guess| (the CFL speed). Viscosity is the sum of
@@ -194,8 +197,9 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
       a_i = sum_j K_ij (-gamma m_j C(r) x_ij / r - gamma (n_i - n_j)),  K_ij = 2 rho0 / (rho_i + rho_j)
     (n: `normal`, from k_surface_normals), which pulls a drop together instead of pushing its
     surface particles off it."""
-    h = c.h
+    h = prm[P_H]
     for i in position:
+        c = consts_of(prm)
         xi, vi = position[i], velocity[i]
         fi = fluid[i]
         di = number_density[i]
@@ -324,7 +328,7 @@ class DFSPHSolver(SPHSolver):
     def compute_density(self) -> None:
         k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.wall_grad,
                          self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
-                         self.consts, self.box, self.ftab, self.ghost_t, self.ghost_g,
+                         self.prm, self.ftab, self.ghost_t, self.ghost_g,
                          self.ctype, self.cprm, self.sdf, self.kern)
 
     def _solve(self, kappa_of, total, warm_scale: float, bound: float, dt: float) -> tuple[int, float]:
@@ -362,7 +366,7 @@ class DFSPHSolver(SPHSolver):
         """Correct v* so the predicted number density is delta0 where compressed (step 6)."""
         def kappa_of():
             k_density_kappa(self.position, self.velocity, self.number_density, self.near, self.near_count,
-                            self.lay, self.alpha, self.wall_grad, self.kappa, self.residual, dt, self.consts,
+                            self.lay, self.alpha, self.wall_grad, self.kappa, self.residual, dt, self.prm,
                             self.kern)
         it, err = self._solve(kappa_of, self.kappa_density, WARM_START / (dt * dt), self.max_density_error, dt)
         k_scale(self.kappa_density, dt * dt)
@@ -377,7 +381,7 @@ class DFSPHSolver(SPHSolver):
             k_surface_normals(self.position, self.number_density, self.near, self.near_count, self.lay, self.h,
                               self.normal, self.kern)
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
-                      self.density, self.near, self.near_count, self.lay, self.consts, self.ftab,
+                      self.density, self.near, self.near_count, self.lay, self.prm, self.ftab,
                       self.stats, guess, self.normal, self.kern, mode)
         self.vmax = float(self.stats.to_numpy()[0])
 

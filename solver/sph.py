@@ -28,7 +28,7 @@ from .errors import TooLarge, Unstable
 from .neighbours import (CELL_DIV, SKIN, k_clear2, k_count, k_gather, k_moved_beyond, k_neighbours, k_scatter,
                          exclusive_scan)
 from .params import F_ETA, F_MU, F_RHO0, F_SIGMA, SolverParams
-from .types import Box, Consts, ivec2, ivec3, vec3
+from .types import ivec2, ivec3, pack_constants, vec3
 from .wcsph import k_advance, k_density, k_forces, k_synced_velocity
 
 # A step shorter than this fraction of the acoustic CFL step means the state has blown up. The
@@ -137,12 +137,11 @@ class SPHSolver:
             self.ref.from_numpy(state["position_ref"].astype(np.float32))
         self._lists_valid = False
         lo, hi = open_box(params)
-        self.box = Box(lo=vec3(*lo), hi=vec3(*hi),
-                       restitution=params.domain_restitution, friction=params.domain_friction,
-                       keep=self.KEEP * params.particle_radius)
-        self.consts = Consts(h=h, gravity=vec3(*params.gravity), gamma=params.gamma,
-                             lattice=params.lattice_density, grad_scale=params.grad_scale,
-                             threshold=params.surface_threshold)
+        self.prm = _ndarray(np.asarray(pack_constants(
+            h=h, gravity=params.gravity, gamma=params.gamma, lattice=params.lattice_density,
+            grad_scale=params.grad_scale, threshold=params.surface_threshold, lo=lo, hi=hi,
+            restitution=params.domain_restitution, friction=params.domain_friction,
+            keep=self.KEEP * params.particle_radius), np.float32))
         table = params.fluid_table
         nu_max = float(np.max(np.maximum(table[:, F_MU], table[:, F_ETA]) / table[:, F_RHO0]))
         self.dt_visc = 0.125 * (0.5 * h) ** 2 / nu_max if nu_max > 0 else math.inf
@@ -234,7 +233,7 @@ class SPHSolver:
     def compute_density(self, gate=None) -> None:
         k_density(self.position, self.fluid, self.number_density, self.density, self.pressure,
                   self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
-                  self.consts, self.box, self.ftab, self.ghost_t, self.ghost_g,
+                  self.prm, self.ftab, self.ghost_t, self.ghost_g,
                   self.ctype, self.cprm, self.sdf, self.open_gate if gate is None else gate,
                   self.params.density_kind)
 
@@ -247,12 +246,12 @@ class SPHSolver:
         pull_clock raises."""
         k_forces(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
                  self.density, self.pressure, self.near, self.near_count, self.lay,
-                 self.consts, self.box, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom,
+                 self.prm, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom,
                  self.ctype, self.cprm, self.sdf, self.stats, self.ctl, self.params.pressure_kind, self.tension)
 
     def advance(self) -> None:
         k_advance(self.position, self.velocity, self.acceleration, self.ref, 0.5 * self.skin,
-                  self.box, self.ctype, self.cprm, self.sdf, self.ctl)
+                  self.prm, self.ctype, self.cprm, self.sdf, self.ctl)
 
     def advance_clock(self, dt: float) -> None:
         """The step of length dt is done: time, step count and dt_{n-1/2} move on (the host's
@@ -262,7 +261,7 @@ class SPHSolver:
         self.steps += 1
 
     def collide(self) -> None:
-        k_collide(self.position, self.velocity, self.box, self.ctype, self.cprm, self.sdf)
+        k_collide(self.position, self.velocity, self.prm, self.ctype, self.cprm, self.sdf)
 
     # ------------------------------------------------------------------------------- step
     def gated_step(self, run) -> None:

@@ -24,7 +24,7 @@ from .boundaries import (boundary_sums, collide_one, collider_sdf, domain_walls,
 from .clock import (AMAX, CAP, CFL_HS, DT, GO, HS, KICK, MIN_DT, MOVED, SOUND, UNSTABLE, VMAX, end_step,
                     gate_open, land_on_target)
 from .params import F_B, F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA
-from .types import D1, F1, F2, F4, I1, V3, Box, Consts, ivec2, raise_max, vec3
+from .types import D1, F1, F2, F4, I1, P_H, V3, box_of, consts_of, ivec2, raise_max, vec3
 
 
 @ti.func
@@ -48,13 +48,15 @@ def color_tension(sigma: ti.f32, n, lap: ti.f32, rho: ti.f32, h: ti.f32, thresho
 @ti.kernel
 def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure: F1,
               verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
-              c: Consts, box: Box, ftab: F2, ghost_t: F4, ghost_g: F4,
+              prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4,
               ctype: I1, cprm: F2, sdf: F1, ctl: D1, dkern: ti.template()):
     """Density and pressure from the Verlet list; also copies the entries now within h (and not
-    coincident) into the exact list `near` that the force pass reads, without branching."""
-    h = c.h
+    coincident) into the exact list `near` that the force pass reads, without branching.
+    `prm`: the constants (types.consts_of, box_of)."""
+    h = prm[P_H]
     for i in position:
         if gate_open(ctl):
+            c, box = consts_of(prm), box_of(prm)
             xi = position[i]
             s = K.w_r2(dkern, 0.0, h)                 # the particle itself
             base = i * lay.x
@@ -82,17 +84,18 @@ def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure
 @ti.kernel
 def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1,
              density: F1, pressure: F1, near: I1, near_count: I1, lay: ivec2,
-             c: Consts, box: Box, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2,
+             prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2,
              ctype: I1, cprm: F2, sdf: F1, stats: F1, ctl: D1, pkern: ti.template(),
              tension: ti.template()):
     """Accelerations (pressure, viscosity, surface tension, gravity, walls), then the step length
     from the largest speed and acceleration (kept in stats[0], stats[1]; see time_step)."""
-    h = c.h
+    h = prm[P_H]
     if gate_open(ctl):
         stats[0] = 0.0
         stats[1] = 0.0
     for i in position:
         if gate_open(ctl):
+            c, box = consts_of(prm), box_of(prm)
             xi, vi = position[i], velocity[i]
             fi = fluid[i]
             mi = ftab[fi, F_MASS]
@@ -170,7 +173,7 @@ def time_step(stats: ti.template(), ctl: ti.template()):
 
 @ti.kernel
 def k_advance(position: V3, velocity: V3, acceleration: V3, ref: V3, limit: ti.f32,
-              box: Box, ctype: I1, cprm: F2, sdf: F1, ctl: D1):
+              prm: F1, ctype: I1, cprm: F2, sdf: F1, ctl: D1):
     """Leapfrog, v_{n+1/2} = v_{n-1/2} + KICK a_n, x_{n+1} = x_n + DT v_{n+1/2}; then the walls
     and colliders (boundaries.collide_one); MOVED if a particle is now `limit` or more from
     where the lists were built; then the step ends (clock.end_step)."""
@@ -178,7 +181,7 @@ def k_advance(position: V3, velocity: V3, acceleration: V3, ref: V3, limit: ti.f
         if gate_open(ctl):
             v = velocity[i] + ti.cast(ctl[KICK], ti.f32) * acceleration[i]
             x = position[i] + ti.cast(ctl[DT], ti.f32) * v
-            x, v = collide_one(x, v, box, ctype, cprm, sdf)
+            x, v = collide_one(x, v, box_of(prm), ctype, cprm, sdf)
             position[i] = x
             velocity[i] = v
             if (x - ref[i]).norm() >= limit:

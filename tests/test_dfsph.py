@@ -28,17 +28,20 @@ H, W = 0.3, 0.2
 @pytest.fixture(scope="module")
 def resting_column():
     """A 0.2 x 0.3 x 0.2 m water column from the lattice, settled 0.6 s, then sampled every
-    16 ms for 0.4 s: per sample (median interior density, floor pressure extrapolated from the
+    4 ms for 0.4 s: per sample (median interior density, floor pressure extrapolated from the
     interior profile, rho g H, the solver's density error), plus the positions at 0.6 s and at
-    the end."""
+    the end. (DFSPH's pressure, the last density solve's kappa, swings by +-30 % from step to
+    step: the solve stops as soon as the mean error is under its bound. Sampled every 16 ms,
+    the mean of 25 samples moved between 0.97 and 1.10 x rho g H when the walls' clamp distance
+    changed by 1e-7 r; 100 samples average that out.)"""
     spec, params, s = dfsph(tiny_spec(((0, 0, 0), (W, H, W)), ((0, 0, 0), (W, H + 0.1, W)),
                                       fluid={"viscosity": 1.0}))
     s.advance_to(0.6)
     settled = s.snapshot()["position"]
     s.frame_report()
     h, samples = params.h, []
-    for k in range(25):
-        s.advance_to(0.6 + 0.016 * (k + 1))
+    for k in range(100):
+        s.advance_to(0.6 + 0.004 * (k + 1))
         d = s.snapshot()
         p, y = d["position"], d["position"][:, 1]
         top = np.percentile(y, 99.5) + spec.sim.particle_radius
@@ -60,8 +63,8 @@ def test_resting_column_density(resting_column):
 
 def test_resting_column_floor_pressure(resting_column):
     """Hydrostatics: the interior pressure profile extrapolated to the floor, averaged over
-    time, is rho g H within 5 %. (Measured +2.9 %: the solve stops at a 0.1 % mean
-    compression, so part of each step's pressure comes from the warm start; the layer touching
+    time, is rho g H within 5 %. (Measured -2.0 % to +0.6 % over 100 samples, with the walls'
+    clamp distance moved by 1e-7 r either way to see the round-off spread; the layer touching
     the floor, pushed by its own kappa only (Akinci et al. 2012), is left out of the fit.)"""
     samples, _, _ = resting_column
     ratio = samples[:, 1].mean() / samples[:, 2].mean()
