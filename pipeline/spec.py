@@ -317,6 +317,11 @@ class Render(Strict):
     domain: bool = True                         # draw the domain box as a thin outline
     colliders: bool = True
     ssaa: bool = True
+    # motion blur: renders of the frame averaged, the fluid moved along its velocity to each of
+    # this many instants while the shutter is open (0 or 1: none); shutter: the open share of a
+    # frame, centred on it (0.5: a 180-degree shutter)
+    motion_blur: Annotated[int, Field(ge=0, le=64)] = 0
+    shutter: Annotated[float, Field(gt=0, le=1)] = 0.5
     depth: Literal["none", "png16"] = "none"
     movie: bool = True
     contact_sheet: bool = True

@@ -44,8 +44,9 @@ def scene(tmp_path, look: str = "preview", surface: dict | None = None, **render
         colliders=({"type": "box", "min": (0.45, 0.0, 0.1), "max": (0.55, 0.1, 0.3)},), render=base))
 
 
-def synthetic_meshes(spec, frames):
-    """A sphere of water that moves along x, written where the surface stage would put it."""
+def synthetic_meshes(spec, frames, velocity=(0.0, 0.0, 0.0)):
+    """A sphere of water that moves along x, written where the surface stage would put it (its
+    vertices carry `velocity`)."""
     import pyvista as pv
 
     from pipeline.formats import write_mesh
@@ -58,7 +59,7 @@ def synthetic_meshes(spec, frames):
         s = pv.Sphere(radius=0.1, center=(0.15 + 0.05 * f, 0.1, 0.2), theta_resolution=40, phi_resolution=40)
         pts = np.asarray(s.points, np.float32)
         faces = np.asarray(s.faces).reshape(-1, 4)[:, 1:].astype(np.int32)
-        mesh = Mesh(pts, faces, vertex_normals(pts, faces), np.zeros_like(pts))
+        mesh = Mesh(pts, faces, vertex_normals(pts, faces), np.broadcast_to(np.float32(velocity), pts.shape).copy())
         path = paths.surface_meshes(f)[None]
         path.parent.mkdir(parents=True, exist_ok=True)
         write_mesh(path, mesh, "ply")
@@ -129,6 +130,29 @@ def test_looks_golden(tmp_path, look):
                  np.zeros((40, 3), np.float32), 0.004)
     render.run(spec, [2], paths, quiet())
     compare(f"look_{look}_f2", paths.render_frame(2))
+
+
+def test_motion_blur_comes_from_the_velocity(tmp_path):
+    """render.motion_blur = 8: the fluid is drawn at 8 instants of a half-frame shutter, moved
+    along its velocity, and the renders averaged. A sphere at rest comes out as the sharp frame
+    (to rounding); the same sphere moving at 3 m/s (6 cm of travel while the shutter is open)
+    is smeared: pixels along its edges change (measured 217 by over 30 levels of 255 at 320x180),
+    and the frame matches its golden."""
+    from pipeline.stages import render
+
+    def frame(name, velocity, **kw):
+        spec = scene(tmp_path / name, **kw)
+        paths = synthetic_meshes(spec, [2], velocity=velocity)
+        render.run(spec, [2], paths, quiet())
+        return np.asarray(Image.open(paths.render_frame(2)), np.float64), paths
+
+    sharp, _ = frame("sharp", (3.0, 0.0, 0.0))
+    still, _ = frame("still", (0.0, 0.0, 0.0), motion_blur=8)
+    blur, paths = frame("blur", (3.0, 0.0, 0.0), motion_blur=8)
+    assert np.abs(still - sharp).max() <= 1
+    changed = (np.abs(blur - sharp).max(axis=2) > 30).sum()
+    assert changed > 150, changed
+    compare("motion_blur_f2", paths.render_frame(2))
 
 
 def test_particles_golden_colored_by_speed(tmp_path):

@@ -160,6 +160,7 @@ class FrameRenderer:
         if spec.render.mode == "particles":
             data, attrs = read_frame(paths.sim_frame(frame))
             cloud = pv.PolyData(data["position"].astype(np.float32))
+            cloud.point_data["motion"] = np.asarray(data["velocity"], np.float32)
             if spec.render.color_by == "speed":
                 cloud["speed"] = np.linalg.norm(data["velocity"], axis=1)
                 out.append((cloud, dict(scalars="speed", cmap="viridis", clim=(0.0, spec.expected_max_speed()),
@@ -181,6 +182,7 @@ class FrameRenderer:
             poly = pv.PolyData.from_regular_faces(m.points, m.faces)
             poly.point_data["Normals"] = m.normals
             poly.point_data.active_normals_name = "Normals"
+            poly.point_data["motion"] = np.asarray(m.velocity, np.float32)
             color = look.get("color") or (spec.fluids[[f.name for f in spec.fluids].index(key)].color
                                           if key is not None else spec.fluids[0].color)
             if "tint" in look:          # water: the fluid's color, half way to clear water's
@@ -192,10 +194,13 @@ class FrameRenderer:
             out.append((poly, dict(color=color, opacity=look["opacity"], smooth_shading=True, **kw)))
         spray = paths.surface_spray(frame)
         if spray.exists():
-            pts = read_points(spray)["position"]
+            points = read_points(spray)
+            pts = points["position"]
             if len(pts):            # fine droplets: a particle's diameter on screen, at least 2 px
                 size = max(2.0, 0.8 * self._pixels_per_metre() * 2 * spec.sim.particle_radius)
-                out.append((pv.PolyData(pts), dict(color=look["spray_color"], render_points_as_spheres=True,
+                cloud = pv.PolyData(pts)
+                cloud.point_data["motion"] = points["velocity"]
+                out.append((cloud, dict(color=look["spray_color"], render_points_as_spheres=True,
                                                    point_size=size, ambient=0.5)))
         return out
 
@@ -205,17 +210,35 @@ class FrameRenderer:
         return self.spec.render.resolution[1] / (2 * dist * np.tan(np.radians(cam.fov) / 2))
 
     def render(self, frame: int, paths) -> np.ndarray:
-        pl = self.pl
+        pl, r = self.pl, self.spec.render
         for actor in self.fluid_actors:
             pl.remove_actor(actor, render=False)
-        self.fluid_actors = [pl.add_mesh(mesh, **kw) for mesh, kw in self._fluid_meshes(frame, paths)]
-        cam = camera_at(self.spec.render, frame)
+        meshes = self._fluid_meshes(frame, paths)
+        self.fluid_actors = [pl.add_mesh(mesh, **kw) for mesh, kw in meshes]
+        cam = camera_at(r, frame)
         pl.camera.position = cam.position
         pl.camera.focal_point = cam.focal_point
         pl.camera.up = cam.up
         pl.camera.view_angle = cam.fov
         pl.reset_camera_clipping_range()
-        return pl.screenshot(return_img=True)
+        if r.motion_blur < 2:
+            return pl.screenshot(return_img=True)
+        return self._motion_blurred([m for m, _kw in meshes], r.motion_blur, r.shutter / self.spec.shot.fps)
+
+    def _motion_blurred(self, meshes, samples: int, open_s: float) -> np.ndarray:
+        """The mean of `samples` renders, each with the fluid moved along its velocity to an
+        instant of the open shutter (open_s seconds, centred on the frame's time)."""
+        base = [np.array(m.points) for m in meshes]
+        total = None
+        for k in range(samples):
+            t = ((k + 0.5) / samples - 0.5) * open_s
+            for m, p in zip(meshes, base):
+                m.points = p + t * m.point_data["motion"]
+            img = self.pl.screenshot(return_img=True).astype(np.float64)
+            total = img if total is None else total + img
+        for m, p in zip(meshes, base):
+            m.points = p
+        return np.clip(np.rint(total / samples), 0, 255).astype(np.uint8)
 
     def depth(self) -> np.ndarray:
         return self.pl.get_image_depth(fill_value=np.nan)
