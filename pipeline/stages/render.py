@@ -32,11 +32,11 @@ PNG_LEVEL = 3
 # Translucency without depth peeling: with Mesa's llvmpipe, peeling left a translucent mesh
 # out of the image altogether (measured), and plain alpha blending draws it.
 LOOKS = {
-    "water": {"background": (0.66, 0.73, 0.80), "background_top": (0.20, 0.34, 0.55), "domain": False,
+    "water": {"background": (0.66, 0.73, 0.80), "background_top": (0.52, 0.63, 0.77), "domain": False,
               "ground_color": (0.50, 0.52, 0.54), "ground_size": 30.0, "shading": "phong", "opacity": 0.65,
               "specular": 1.0, "specular_power": 60.0, "ambient": 0.3, "diffuse": 0.55,
               "tint": (0.62, 0.80, 0.88), "spray_color": (0.93, 0.97, 1.0)},
-    "clay": {"background": (0.55, 0.55, 0.56), "background_top": (0.28, 0.29, 0.31), "domain": False,
+    "clay": {"background": (0.55, 0.55, 0.56), "background_top": (0.45, 0.46, 0.48), "domain": False,
              "ground_color": (0.42, 0.42, 0.43), "ground_size": 30.0, "shading": "phong", "opacity": 1.0,
              "specular": 0.08, "specular_power": 10.0, "ambient": 0.25, "diffuse": 0.8,
              "color": (0.80, 0.78, 0.74), "spray_color": (0.80, 0.78, 0.74)},
