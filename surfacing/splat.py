@@ -307,11 +307,19 @@ def sort_by_cube(positions, origin: np.ndarray, top: np.ndarray, support: float)
     count = D.zeros(ti.i32, 8 * per_phase)
     k_cube_keys(positions, vec3(*map(float, origin)), 1.0 / edge, ivec3(*dims), ivec3(*half),
                 key, count)
-    start, _ = D.exclusive_scan(count, 8 * per_phase)
-    order = D.empty(ti.i32, n)
-    k_place(key, start, D.zeros(ti.i32, 8 * per_phase), order)
+    return (*_order_by_key(key, count), per_phase)
+
+
+def _order_by_key(key, count):
+    """(order, start): the counting sort of particles by `key` (count: particles per key),
+    each key's run in increasing particle index (so that sums over it add in the same order on
+    every run and backend)."""
+    keys = count.shape[0]
+    start, _ = D.exclusive_scan(count, keys)
+    order = D.empty(ti.i32, key.shape[0])
+    k_place(key, start, D.zeros(ti.i32, keys), order)
     k_sort_runs(start, count, order)
-    return order, start, count, per_phase
+    return order, start, count
 
 
 @ti.kernel
@@ -326,18 +334,11 @@ def k_cell_keys(pos: V3, origin: vec3, inv: ti.f32, dims: ivec3, key: I1, count:
 
 def sort_by_cell(positions, origin: np.ndarray, top: np.ndarray, edge: float):
     """(order, start, count, dims): the particles counting-sorted by cells of `edge` numbered
-    row by row, each cell's run in increasing particle index (so that sums over neighbours
-    add in the same order on every run and backend)."""
-    n = positions.shape[0]
+    row by row (_order_by_key)."""
     dims = [int(v) + 1 for v in np.floor((top - origin) / edge)]
-    cells = math.prod(dims)
-    key, count = D.empty(ti.i32, n), D.zeros(ti.i32, cells)
+    key, count = D.empty(ti.i32, positions.shape[0]), D.zeros(ti.i32, math.prod(dims))
     k_cell_keys(positions, vec3(*map(float, origin)), 1.0 / edge, ivec3(*dims), key, count)
-    start, _ = D.exclusive_scan(count, cells)
-    order = D.empty(ti.i32, n)
-    k_place(key, start, D.zeros(ti.i32, cells), order)
-    k_sort_runs(start, count, order)
-    return order, start, count, dims
+    return (*_order_by_key(key, count), dims)
 
 
 def mark_blocks(pos, base_block: np.ndarray, shape: tuple, origin: np.ndarray, cell: float, support: float):
@@ -381,34 +382,33 @@ class Splat:
         self.order = None
         if self.anisotropic or spray_below > 0:
             raw, vol = self._anisotropy(raw, vol, top, spray_below)
-        if self.atomic:                     # any order will do
-            self.pos, self.vol = raw, vol
-        else:
-            self.pos, self.vol, self.shape = self._sorted(raw, vol, top, self.shape)
+        if not self.atomic:                 # (the atomic scatter takes any order)
+            order, self.start, self.count, self.per_phase = sort_by_cube(raw, self.origin, top, support)
+            raw, vol = self._take(order, raw, vol)
+        self.pos, self.vol = raw, vol
         self.lookup, self.blocks = mark_blocks(self.pos, self.base_block, shape, self.origin, cell, support)
         self.lookup_dev = D.upload(self.lookup)
 
-    def _sorted(self, pos, vol, top, table=None):
-        """(pos, vol, table) sorted by cube (table: per-particle rows, or None to leave as is);
-        self.order, start, count and per_phase follow (order: into the input order)."""
-        order, self.start, self.count, self.per_phase = sort_by_cube(pos, self.origin, top, self.support)
+    def _take(self, order, pos, vol):
+        """(pos, vol) in `order` (and the anisotropy table, if any); self.order, the order into
+        the input, follows."""
         out_pos, out_vol = D.empty(ti.f32, self.n, 3), D.empty(ti.f32, self.n)
         k_take_v3(order, pos, out_pos)
         k_take_f1(order, vol, out_vol)
-        if table is not None and table.shape[0] == self.n:
+        if self.anisotropic and self.order is not None:     # (the table is made after the first sort)
             rows = D.empty(ti.f32, self.n, A.COLUMNS)
-            A.k_take_rows(order, table, rows)
-            table = rows
+            A.k_take_rows(order, self.shape, rows)
+            self.shape = rows
         if self.order is None:
             self.order = order
         else:                               # composed with the sort before it
             both = D.empty(ti.i32, self.n)
             k_take_i1(order, self.order, both)
             self.order = both
-        return out_pos, out_vol, table
+        return out_pos, out_vol
 
     def _anisotropy(self, raw, vol, top, spray_below: int):
-        """Sort by cube, then per particle its neighbour count (spray), and with `anisotropic`
+        """Sort by cell, then per particle its neighbour count (spray), and with `anisotropic`
         its smoothed centre and kernel (surfacing/anisotropy.py). Returns (positions, volumes)
         in the sorted order, the centres for positions where anisotropic. The neighbour search
         sorts by cells of edge h numbered row by row (sort_by_cell): a row of cells along z is
@@ -417,10 +417,7 @@ class Splat:
         2.56 s; cells of 2h or 2h/3 row by row, 0.85 and 1.12 s)."""
         edge = self.support
         order, start, count, dims = sort_by_cell(raw, self.origin, top, edge)
-        pos, sorted_vol = D.empty(ti.f32, self.n, 3), D.empty(ti.f32, self.n)
-        k_take_v3(order, raw, pos)
-        k_take_f1(order, vol, sorted_vol)
-        vol, self.order = sorted_vol, order
+        pos, vol = self._take(order, raw, vol)
         center, table = D.empty(ti.f32, self.n, 3), D.empty(ti.f32, self.n, A.COLUMNS)
         neighbours = D.empty(ti.i32, self.n)
         A.k_anisotropy(pos, start, count, vec3(*map(float, self.origin)), edge, ivec3(*dims),
