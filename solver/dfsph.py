@@ -385,6 +385,24 @@ class DFSPHSolver(SPHSolver):
                       self.stats, guess, self.normal, self.kern, mode)
         self.vmax = float(self.stats.to_numpy()[0])
 
+    def time_step(self, t_target: float | None) -> float:
+        """The stable step, shortened to land on t_target without a sliver step (the host's
+        twin of clock.land_on_target, which WCSPH runs on the device)."""
+        dt = self.stable_dt()
+        if t_target is not None:
+            remaining = t_target - self.time
+            if remaining <= dt * 1.0001:
+                dt = remaining
+            elif remaining < 2 * dt:       # split the last two steps evenly, no sliver step
+                dt = 0.5 * remaining
+        return dt
+
+    def advance_clock(self, dt: float) -> None:
+        """The step of length dt is done: time, step count and dt_{n-1/2} move on."""
+        self.dt_prev = dt
+        self.time += dt
+        self.steps += 1
+
     def stable_dt(self) -> float:
         """CFL on the particle speed: nothing moves more than cfl particle radii a step. The
         speed is taken as at least SPEED_FLOOR of the shot's expected largest speed, so that a

@@ -253,13 +253,6 @@ class SPHSolver:
         k_advance(self.position, self.velocity, self.acceleration, self.ref, 0.5 * self.skin,
                   self.prm, self.ctype, self.cprm, self.sdf, self.ctl)
 
-    def advance_clock(self, dt: float) -> None:
-        """The step of length dt is done: time, step count and dt_{n-1/2} move on (the host's
-        clock, for solvers that decide on the host)."""
-        self.dt_prev = dt
-        self.time += dt
-        self.steps += 1
-
     def collide(self) -> None:
         k_collide(self.position, self.velocity, self.prm, self.ctype, self.cprm, self.sdf)
 
@@ -312,19 +305,6 @@ class SPHSolver:
         if c[clock.UNSTABLE] > 0.5:
             raise Unstable(f"the time step fell to {c[clock.DT]:.3g} s (max acceleration {self.amax:.3g} m/s^2, "
                            f"max speed {self.vmax:.3g} m/s)")
-
-    def time_step(self, t_target: float | None) -> float:
-        """The stable step (self.stable_dt, on the host), shortened to land on t_target without
-        a sliver step: for solvers that decide on the host (clock.land_on_target is the same
-        rule on the device)."""
-        dt = self.stable_dt()
-        if t_target is not None:
-            remaining = t_target - self.time
-            if remaining <= dt * 1.0001:
-                dt = remaining
-            elif remaining < 2 * dt:       # split the last two steps evenly, no sliver step
-                dt = 0.5 * remaining
-        return dt
 
     def phase_runner(self, timed: bool):
         """run(name, fn, *args): calls fn, and with `timed` adds its synchronised wall time
