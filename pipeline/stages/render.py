@@ -201,7 +201,7 @@ class FrameRenderer:
                 cloud = pv.PolyData(pts)
                 cloud.point_data["motion"] = points["velocity"]
                 out.append((cloud, dict(color=look["spray_color"], render_points_as_spheres=True,
-                                                   point_size=size, ambient=0.5)))
+                                        point_size=size, ambient=0.5)))
         return out
 
     def _pixels_per_metre(self) -> float:
@@ -286,8 +286,9 @@ def check_image(spec, frame: int, image: np.ndarray) -> np.ndarray:
         raise StageError(f"{where} came out {image.shape[1]}x{image.shape[0]}, not the {w}x{h} of "
                          f"render.resolution: the off-screen framebuffer cannot be that large here")
     flat = (image == image.reshape(-1, image.shape[2])[0]).all()
-    empty_view = spec.render.background_top is None and \
-        np.abs(image[0, 0, :3].astype(float) - 255 * np.asarray(spec.render.background)).max() <= 2
+    look = look_of(spec.render)            # the background drawn: the look's, or the job's own
+    empty_view = look["background_top"] is None and \
+        np.abs(image[0, 0, :3].astype(float) - 255 * np.asarray(look["background"])).max() <= 2
     if flat and not empty_view:       # (a flat background and nothing in view is a flat image)
         raise StageError(f"{where} came out one flat color at {w}x{h}: the off-screen render failed "
                          f"(a framebuffer this large may not be possible here); lower render.resolution")
