@@ -198,15 +198,14 @@ def remove_leaving(spec, params: SolverParams, solver, frame: int):
     new solver on the rest of the state, same clock), and the count in the log."""
     from solver.sph import left_through_open_faces
 
-    state = solver.state()
-    gone = left_through_open_faces(params, state["position"])
+    gone = left_through_open_faces(params, solver.position.to_numpy())     # (the state's order)
     if not gone.any():
         return solver
     if gone.all():
         raise StageError(f"frame {frame:04d}: sim: every particle has left the domain through its open "
                          f"face(s) {', '.join(params.open_faces)}")
     c = solver.controller()
-    kept = make_solver(spec, params, {k: v[~gone] for k, v in state.items()}, time_s=c["time"], step=c["step"],
+    kept = make_solver(spec, params, {k: v[~gone] for k, v in solver.state().items()}, time_s=c["time"], step=c["step"],
                        dt_prev=c["dt_prev"])
     log.info("sim: frame %04d: %d particle(s) left through the open face(s) %s and were removed; %d remain",
              frame, int(gone.sum()), " ".join(params.open_faces), kept.n)
