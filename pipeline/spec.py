@@ -138,6 +138,9 @@ class Domain(Strict):
     max: Vec3 = (1.0, 1.0, 1.0)
     restitution: Unit = 0.0
     friction: Unit = 0.1
+    # dfsph: walls and colliders hold a fluid's dynamic viscosity by no slip (honey clings);
+    # false: free-slip walls (viscosity acts between particles only)
+    no_slip: bool = True
     # faces with no wall: particles that leave through one are removed (and counted in the log)
     open: tuple[Literal["-x", "+x", "-y", "+y", "-z", "+z"], ...] = ()
 

@@ -182,6 +182,23 @@ def boundary_sums(xi, c: ti.template(), box: ti.template(), ghost_t: ti.template
     return dens, -into
 
 
+@ti.func
+def wall_viscosity(xi, c: ti.template(), box: ti.template(), table: ti.template(), ctype: ti.template(),
+                   cprm: ti.template(), sdf: ti.template()) -> ti.f32:
+    """The viscous weight S of the walls and colliders near x_i (kernels.wall_viscosity_table),
+    each as a plane at its distance; edges and corners count each of their walls."""
+    a, s = nearest_walls(xi, box.lo, box.hi, c.h)
+    out = 0.0
+    for ax in ti.static(range(3)):
+        if s[ax] != 0.0:
+            out += table_row(table, 0, a[ax], c.h)
+    for k in range(ctype.shape[0]):
+        phi, _n = collider_sdf(ctype[k], cprm, sdf, k, xi)
+        if phi < c.h:
+            out += table_row(table, 0, ti.max(phi, 0.0), c.h)
+    return out
+
+
 @ti.kernel
 def k_clearance(position: V3, ctype: I1, cprm: F2, sdf: F1, out: F1):
     for i in position:

@@ -21,7 +21,8 @@ compressing divergence. One step (Bender & Koschier 2017, Algorithm 1):
      where it compresses, until its mean times dt / delta0 is under max_divergence_error
   3. non-pressure accelerations (gravity, viscosity, surface tension)
   4. time step: CFL on the particle speed alone, dt = cfl r / max |v + a dt|, capped by max_dt
-  5. v* = v + dt a
+  5. v* = v + dt a; a viscosity in Pa s is taken implicitly where the step is beyond its
+     explicit limit (solver.viscosity)
   6. density solve: delta* = delta + dt D delta / Dt -> delta0 where compressed, until the
      mean relative compression is under max_density_error
   7. drift x += dt v*, collide
@@ -34,18 +35,19 @@ import numpy as np
 import taichi as ti
 
 from . import kernels as K
-from .boundaries import boundary_sums
+from .boundaries import boundary_sums, wall_viscosity
 from .errors import Unstable
 from .neighbours import k_gather_f1
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
 from .sph import SPHSolver
+from .sums import Summer
 from .types import F1, F2, F4, I1, P_H, V3, box_of, consts_of, ivec2, raise_max, vec3
+from .viscosity import ImplicitViscosity
 from .wcsph import color_tension, morris
 
 # A particle with fewer neighbours than this is at a free surface and takes no part in the
 # divergence solve (its neighbourhood is too thin to tell expansion from splashing apart);
 # SPlisHSPlasH uses 20 for a 3D kernel of h = 4 r, whose full neighbourhood holds about 30.
-CHUNK = 1024            # particles a thread sums for the solves' mean error
 MIN_DIVERGENCE_NEIGHBOURS = 20
 MIN_ITERATIONS = 2
 # Share of the last step's kappa a solve starts from. The whole of it overshoots where the flow
@@ -65,11 +67,12 @@ SPEED_FLOOR = 0.25
 @ti.kernel
 def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, alpha: F1, wall_grad: V3,
                      verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
-                     prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4,
+                     prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, visc_t: F2, wall_visc: F1,
                      ctype: I1, cprm: F2, sdf: F1, kern: ti.template()):
     """Number density delta_i = sum_j W_ij + sum_b W_ib, density m_i delta_i and the factor
     alpha_i; copies the Verlet entries now within h into `near`, as the WCSPH density pass.
-    `prm`: the constants (types.consts_of, box_of)."""
+    wall_visc[i]: the no-slip weight 2 eta_i S_i / (delta_i delta0) of the walls near i
+    (boundaries.wall_viscosity). `prm`: the constants (types.consts_of, box_of)."""
     h = prm[P_H]
     for i in position:
         c, box = consts_of(prm), box_of(prm)
@@ -99,6 +102,11 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
         density[i] = mi * s
         wall_grad[i] = wg
         beta = (grad_sum + wg).norm_sqr() / mi + sq
+        eta = ftab[fluid[i], F_ETA]
+        wv = 0.0
+        if eta > 0.0:
+            wv = 2.0 * eta * wall_viscosity(xi, c, box, visc_t, ctype, cprm, sdf) / (s * c.lattice)
+        wall_visc[i] = wv
         alpha[i] = ti.select(beta > 0.0, 1.0 / ti.max(beta, 1e-30), 0.0)
 
 
@@ -161,21 +169,6 @@ def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I
 
 
 @ti.kernel
-def k_chunk_sums(residual: F1, partial: F1):
-    """partial[c]: the sum of residual over chunk c of CHUNK particles, in order. The mean error
-    is their sum: the same on every run and backend, where one sum by every thread was an
-    atomic each and on a GPU took most of the solve's time (1.5 ms a sweep at 1M particles)."""
-    n = residual.shape[0]
-    for c in partial:
-        s = 0.0
-        for k in range(CHUNK):
-            i = c * CHUNK + k
-            if i < n:
-                s += residual[i]
-        partial[c] = s
-
-
-@ti.kernel
 def k_scale(a: F1, factor: ti.f32):
     for i in a:
         a[i] *= factor
@@ -184,9 +177,13 @@ def k_scale(a: F1, factor: ti.f32):
 @ti.kernel
 def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
                   near: I1, near_count: I1, lay: ivec2, prm: F1, ftab: F2, stats: F1, dt_guess: ti.f32,
-                  normal: V3, kern: ti.template(), tension: ti.template()):
+                  normal: V3, viscous: V3, wall_visc: F1, kern: ti.template(), tension: ti.template()):
     """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
-    raised to the largest |v + a dt_guess| (the CFL speed). Viscosity is the sum of
+    raised to the largest |v + a dt_guess| (the CFL speed). Morris's term goes to `viscous`,
+    apart, to be taken explicitly or implicitly once the step is known (solver.viscosity), with
+    the walls' no-slip pull wall_visc[i] (0 - v_i); it is left out of the CFL speed (viscosity
+    only draws a velocity towards its neighbours' and the walls').
+    Viscosity is the sum of
       Müller et al. 2003 (particle-scale mu):  sum_j mu_ij (v_j - v_i) / (delta_i delta_j) lap W_visc / m_i
       Morris et al. 1997 (dynamic eta, Pa s):  sum_j (eta_i + eta_j) (x_ij . grad W_ij) v_ij
                                                 / (m_i delta_i delta_j (r^2 + 0.01 h^2))
@@ -228,12 +225,13 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
                     k_ij = 2.0 * ftab[fi, F_RHO0] / (density[i] + density[j])
                     gamma = ftab[fi, F_SIGMA]
                     a_st -= k_ij * gamma * (ftab[fj, F_MASS] * cohesion(r, h) * rv / r + normal[i] - normal[j])
-        a = (a_v + a_eta / di) / ftab[fi, F_MASS] + c.gravity + ftab[fi, F_XSPH] / dt_guess * smooth
+        a = a_v / ftab[fi, F_MASS] + c.gravity + ftab[fi, F_XSPH] / dt_guess * smooth
         if ti.static(tension == MUELLER):
             a += color_tension(ftab[fi, F_SIGMA], n, lap, density[i], h, c.threshold)
         if ti.static(tension == AKINCI):
             a += a_st
         acceleration[i] = a
+        viscous[i] = (a_eta / di - wall_visc[i] * vi) / ftab[fi, F_MASS]
         raise_max(stats, 0, (vi + dt_guess * a).norm())
 
 
@@ -267,6 +265,12 @@ def k_kick(velocity: V3, acceleration: V3, dt: ti.f32):
 
 
 @ti.kernel
+def k_kick_both(velocity: V3, acceleration: V3, viscous: V3, dt: ti.f32):
+    for i in velocity:
+        velocity[i] += dt * (acceleration[i] + viscous[i])
+
+
+@ti.kernel
 def k_drift(position: V3, velocity: V3, dt: ti.f32):
     for i in position:
         position[i] += dt * velocity[i]
@@ -278,6 +282,13 @@ def k_pressure(number_density: F1, kappa_dt2: F1, inv_dt2: ti.f32, pressure: F1)
     solve's kappa dt^2."""
     for i in pressure:
         pressure[i] = kappa_dt2[i] * inv_dt2 * number_density[i] ** 2
+
+
+def explicit_viscous_limit(h: float, nu) -> float:
+    """The longest stable explicit step for kinematic viscosities nu (m^2/s): (h / 2)^2 / (8 nu)
+    for the largest (inf without viscosity)."""
+    nu_max = float(np.max(nu))
+    return 0.125 * (0.5 * h) ** 2 / nu_max if nu_max > 0 else math.inf
 
 
 class DFSPHSolver(SPHSolver):
@@ -307,7 +318,18 @@ class DFSPHSolver(SPHSolver):
         self.wall_grad = ti.Vector.ndarray(3, ti.f32, shape=n)
         self.normal = ti.Vector.ndarray(3, ti.f32, shape=n)     # Akinci et al. 2013's surface normals
         self.residual = ti.ndarray(ti.f32, n)
-        self.partial = ti.ndarray(ti.f32, (n + CHUNK - 1) // CHUNK)
+        self._sum = Summer(n).total
+        # Viscosity: Müller's particle-scale mu is explicit and caps the step; Morris's eta is
+        # explicit while the step is within its limit, and solved implicitly beyond it
+        table = params.fluid_table
+        self.dt_mu = explicit_viscous_limit(self.h, table[:, F_MU] / table[:, F_RHO0])
+        self.dt_eta = explicit_viscous_limit(self.h, table[:, F_ETA] / table[:, F_RHO0])
+        self.viscous = ti.Vector.ndarray(3, ti.f32, shape=n)
+        self.wall_visc = ti.ndarray(ti.f32, n)
+        self.visc_t = ti.ndarray(ti.f32, (1, 25))
+        wall = K.wall_viscosity_table(params.pressure_kind, self.h, params.particle_radius)
+        self.visc_t.from_numpy(wall if params.no_slip else np.zeros_like(wall))    # free slip: no pull
+        self.implicit = ImplicitViscosity(n) if math.isfinite(self.dt_eta) else None
         for name in self.EXTRA:
             a, b = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
             a.from_numpy(np.asarray(state.get(name, np.zeros(n)), np.float32))
@@ -328,7 +350,7 @@ class DFSPHSolver(SPHSolver):
     def compute_density(self) -> None:
         k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.wall_grad,
                          self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
-                         self.prm, self.ftab, self.ghost_t, self.ghost_g,
+                         self.prm, self.ftab, self.ghost_t, self.ghost_g, self.visc_t, self.wall_visc,
                          self.ctype, self.cprm, self.sdf, self.kern)
 
     def _solve(self, kappa_of, total, warm_scale: float, bound: float, dt: float) -> tuple[int, float]:
@@ -340,8 +362,7 @@ class DFSPHSolver(SPHSolver):
         iterations, err = 0, math.inf
         while iterations < self.max_iterations:
             kappa_of()
-            k_chunk_sums(self.residual, self.partial)
-            err = float(self.partial.to_numpy().sum(dtype=np.float64)) / (self.n * self.params.lattice_density)
+            err = self._sum(self.residual) / (self.n * self.params.lattice_density)
             if err <= bound and iterations >= MIN_ITERATIONS:
                 break
             self._apply(self.kappa, total, dt)
@@ -382,8 +403,21 @@ class DFSPHSolver(SPHSolver):
                               self.normal, self.kern)
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
                       self.density, self.near, self.near_count, self.lay, self.prm, self.ftab,
-                      self.stats, guess, self.normal, self.kern, mode)
+                      self.stats, guess, self.normal, self.viscous, self.wall_visc, self.kern, mode)
         self.vmax = float(self.stats.to_numpy()[0])
+
+    def kick(self, dt: float) -> None:
+        """v* = v + dt a (step 5), with Morris's viscosity explicit while dt is within its
+        limit and implicit beyond it (solver.viscosity)."""
+        if self.implicit is None or dt <= self.dt_eta:
+            k_kick_both(self.velocity, self.acceleration, self.viscous, dt)
+            return
+        k_kick(self.velocity, self.acceleration, dt)
+        it, res = self.implicit.solve(self.position, self.velocity, self.fluid, self.number_density, self.near,
+                                      self.near_count, self.lay, self.ftab, self.wall_visc, dt, self.h, self.kern)
+        self.counters["viscosity_steps"] += 1
+        self.counters["viscosity_iterations"] += it
+        self.counters["viscosity_residual"] = max(self.counters["viscosity_residual"], res)
 
     def time_step(self, t_target: float | None) -> float:
         """The stable step, shortened to land on t_target without a sliver step (the host's
@@ -415,7 +449,7 @@ class DFSPHSolver(SPHSolver):
             raise Unstable(f"a particle's speed is {self.vmax:.3g} m/s, over 10 times the shot's expected "
                            f"largest speed")
         dt = self.params.cfl * self.params.particle_radius / max(self.vmax, self.speed_floor, 1e-9)
-        return min(dt, self.dt_visc, self.params.max_dt)
+        return min(dt, self.dt_mu, self.params.max_dt)
 
     def drift(self, dt: float) -> None:
         k_drift(self.position, self.velocity, dt)
@@ -432,7 +466,7 @@ class DFSPHSolver(SPHSolver):
             run("divergence", self.divergence_solve, self.dt_prev)
         run("forces", self.nonpressure)
         dt = self.time_step(t_target)
-        run("kick", k_kick, self.velocity, self.acceleration, dt)
+        run("kick", self.kick, dt)
         run("pressure", self.density_solve, dt)
         run("integrate", self.drift, dt)
         run("collide", self.collide)
@@ -453,16 +487,22 @@ class DFSPHSolver(SPHSolver):
 
     def reset_counters(self) -> None:
         self.counters = {"steps": 0, "density_iterations": 0, "divergence_iterations": 0,
-                         "density_error": 0.0, "divergence_error": 0.0}
+                         "density_error": 0.0, "divergence_error": 0.0,
+                         "viscosity_steps": 0, "viscosity_iterations": 0, "viscosity_residual": 0.0}
 
     def frame_report(self) -> dict[str, float]:
         """Since the last call: mean iterations per step of both solves, and the largest final
-        mean errors (density: relative compression; divergence: relative rate times dt)."""
+        mean errors (density: relative compression; divergence: relative rate times dt); the
+        steps that solved viscosity implicitly, their mean CG iterations and largest final
+        residual (relative to the first)."""
         c, steps = self.counters, max(self.counters["steps"], 1)
         out = {"dfsph_steps": c["steps"], "density_iterations": c["density_iterations"] / steps,
                "divergence_iterations": c["divergence_iterations"] / steps,
                "density_error": c["density_error"], "divergence_error": c["divergence_error"],
-               "max_density_error": self.max_density_error, "max_divergence_error": self.max_divergence_error}
+               "max_density_error": self.max_density_error, "max_divergence_error": self.max_divergence_error,
+               "viscosity_steps": c["viscosity_steps"],
+               "viscosity_iterations": c["viscosity_iterations"] / max(c["viscosity_steps"], 1),
+               "viscosity_residual": c["viscosity_residual"]}
         self.reset_counters()
         return out
 

@@ -266,3 +266,25 @@ def ghost_moment_tables(pressure_kind: int, h: float, radius: float, n: int = 25
     nn = (f * X * X).sum(axis=(1, 2, 3))
     tt = (f * Y * Y).sum(axis=(1, 2, 3))
     return np.stack([nn, tt]).astype(np.float32)
+
+
+BETA_MAX = 1.5          # Morris et al. 1997: cap of the boundary velocity extrapolation
+
+
+def wall_viscosity_table(pressure_kind: int, h: float, radius: float, n: int = 25):
+    """Morris et al. 1997's viscous weight of the boundary samples beyond one plane wall, for a
+    wall at rest (no slip): with the half-space lattice of `ghost_tables` and
+    -x_ib . grad W_ib = |W'| r,
+        S(a) = sum_b |W'(r)| r / (r^2 + 0.01 h^2)
+    so that the wall adds (2 eta_i S / (delta_i delta0)) (0 - v_i) to m_i dv_i / dt, as a
+    mirrored fluid at rest would (solver.viscosity). Returns (1, n), sampled on [0, h]."""
+    d = 2.0 * radius
+    m = int(math.ceil(h / d)) + 1
+    a = np.linspace(0.0, h, n)
+    X = a[:, None, None, None] + radius + d * np.arange(m)[None, :, None, None]
+    Y = (d * np.arange(-m, m + 1))[None, None, :, None]
+    Z = (d * np.arange(-m, m + 1))[None, None, None, :]
+    R = np.sqrt(X * X + Y * Y + Z * Z)
+    beta = np.minimum(BETA_MAX, X / np.maximum(a[:, None, None, None], 1e-30))
+    s = (beta * np.abs(dw_np(pressure_kind, R, h)) * R / (R * R + 0.01 * h * h)).sum(axis=(1, 2, 3))
+    return s[None, :].astype(np.float32)

@@ -67,6 +67,7 @@ class SolverParams:
     open_faces: tuple[str, ...] = ()            # "-x" ... "+z": faces with no wall
     domain_restitution: float = 0.0
     domain_friction: float = 0.1
+    no_slip: bool = True                        # walls hold the dynamic viscosity (DFSPH)
     colliders: tuple[Collider, ...] = ()
     gamma: float = 7.0
     cfl: float = 0.4

@@ -58,6 +58,7 @@ def solver_params(spec) -> SolverParams:
         gravity=tuple(sim.gravity), domain_min=tuple(spec.domain.min), domain_max=tuple(spec.domain.max),
         open_faces=tuple(spec.domain.open),
         domain_restitution=spec.domain.restitution, domain_friction=spec.domain.friction,
+        no_slip=spec.domain.no_slip,
         colliders=tuple(colliders), gamma=sim.gamma, cfl=sim.cfl, max_dt=sim.max_dt,
         surface_threshold=sim.surface_threshold, surface_tension_model=sim.surface_tension_model,
         density_kernel=sim.density_kernel,
@@ -113,6 +114,9 @@ def log_frame(frame: int, report: dict) -> None:
                  report["dfsph_steps"], report["density_iterations"], 100 * report["density_error"],
                  100 * report["max_density_error"], report["divergence_iterations"],
                  100 * report["divergence_error"], 100 * report["max_divergence_error"])
+        if report.get("viscosity_steps"):
+            log.info("sim: frame %04d: viscosity implicit on %d steps, %.1f CG iterations a step, residual %.2g",
+                     frame, report["viscosity_steps"], report["viscosity_iterations"], report["viscosity_residual"])
 
 
 def check_stable(spec, params: SolverParams, frame: int, data: dict) -> None:

@@ -1,0 +1,133 @@
+"""Implicit viscosity: Morris et al. 1997's viscous term taken backward in time and solved with
+conjugate gradients, matrix-free, as Weiler et al. 2018 solve theirs, so that a viscous fluid
+(honey, about 10 Pa s) moves with the flow's own time step instead of the explicit limit
+dt < (h / 2)^2 / (8 nu).
+
+The explicit term (solver/wcsph.morris, summed in dfsph.k_nonpressure) is
+
+    m_i dv_i / dt = sum_j w_ij (v_j - v_i),
+    w_ij = -(eta_i + eta_j) (x_ij . grad W_ij) / ((|x_ij|^2 + 0.01 h^2) delta_i delta_j)  >= 0
+
+and the backward step solves, for the new velocities v from v* (after the other forces),
+
+    A v = M v*,   A = M + dt L,   (L v)_i = sum_j w_ij (v_i - v_j) + w_i v_i.
+
+w_i = 2 eta_i S_i / (delta_i delta0) >= 0 is the no-slip pull of the walls and colliders near i,
+taken as fluid at rest beyond them (kernels.wall_viscosity_table). w_ij = w_ji and w_ij >= 0, so
+L is a weighted graph Laplacian plus a non-negative diagonal and A is symmetric positive
+definite: CG converges, here with A's diagonal m_i + dt sum_j w_ij as the preconditioner. The three
+velocity components share A and are solved together, as one system of 3N unknowns. The solve
+starts from v* and stops when the residual is under `tolerance` of the first one (which is dt L v*,
+the explicit step's viscous impulse), so a fluid as thin as water still gets its viscosity.
+Sums over particles are solver.sums's, the same on every run and backend.
+"""
+import math
+
+import taichi as ti
+
+from . import kernels as K
+from .params import F_ETA, F_MASS
+from .sums import Summer
+from .types import F1, F2, I1, V3, ivec2
+
+@ti.func
+def weight(eta: ti.f32, di: ti.f32, dj: ti.f32, rv, r: ti.f32, h: ti.f32, kern: ti.template()) -> ti.f32:
+    """w_ij of the module docstring (eta = eta_i + eta_j)."""
+    return -eta * rv.dot(K.grad_w(kern, rv, r, h)) / ((r * r + 0.01 * h * h) * di * dj)
+
+
+@ti.kernel
+def k_first_residual(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1, near_count: I1,
+                     lay: ivec2, ftab: F2, wall: F1, dt: ti.f32, h: ti.f32, diag: F1, res: V3, direction: V3,
+                     rr: F1, rz: F1, kern: ti.template()):
+    """From x0 = v*: r = M v* - A v* = -dt L v*, the diagonal of A, the first direction z = r / diag,
+    and per particle r.r and r.z."""
+    for i in position:
+        xi, vi = position[i], velocity[i]
+        fi, di = fluid[i], number_density[i]
+        wsum = wall[i]              # the walls: neighbours at rest
+        lv = wsum * vi
+        base = i * lay.x
+        for m in range(near_count[i]):
+            j = near[base + m * lay.y]
+            rv = xi - position[j]
+            w = weight(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], di, number_density[j], rv, rv.norm(), h, kern)
+            wsum += w
+            lv += w * (vi - velocity[j])
+        d = ftab[fi, F_MASS] + dt * wsum
+        r = -dt * lv
+        diag[i] = d
+        res[i] = r
+        direction[i] = r / d
+        rr[i] = r.dot(r)
+        rz[i] = r.dot(r) / d
+
+
+@ti.kernel
+def k_product(position: V3, fluid: I1, number_density: F1, near: I1, near_count: I1, lay: ivec2, ftab: F2,
+              wall: F1, dt: ti.f32, h: ti.f32, p: V3, ap: V3, pap: F1, kern: ti.template()):
+    """ap = A p and per particle p . A p."""
+    for i in position:
+        xi, pi = position[i], p[i]
+        fi, di = fluid[i], number_density[i]
+        lp = wall[i] * pi
+        base = i * lay.x
+        for m in range(near_count[i]):
+            j = near[base + m * lay.y]
+            rv = xi - position[j]
+            w = weight(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], di, number_density[j], rv, rv.norm(), h, kern)
+            lp += w * (pi - p[j])
+        a = ftab[fi, F_MASS] * pi + dt * lp
+        ap[i] = a
+        pap[i] = pi.dot(a)
+
+
+@ti.kernel
+def k_move(velocity: V3, res: V3, p: V3, ap: V3, diag: F1, alpha: ti.f32, rr: F1, rz: F1):
+    """x += alpha p, r -= alpha A p; per particle r.r and r.z (z = r / diag)."""
+    for i in velocity:
+        velocity[i] += alpha * p[i]
+        r = res[i] - alpha * ap[i]
+        res[i] = r
+        rr[i] = r.dot(r)
+        rz[i] = r.dot(r) / diag[i]
+
+
+@ti.kernel
+def k_turn(res: V3, p: V3, diag: F1, beta: ti.f32):
+    """p = z + beta p."""
+    for i in p:
+        p[i] = res[i] / diag[i] + beta * p[i]
+
+
+class ImplicitViscosity:
+    """The scratch arrays and the CG loop for a solver's n particles."""
+
+    def __init__(self, n: int, tolerance: float = 1e-3, max_iterations: int = 100):
+        self.tolerance, self.max_iterations = float(tolerance), int(max_iterations)
+        self.diag, self.rr, self.rz = (ti.ndarray(ti.f32, n) for _ in range(3))
+        self.res, self.p, self.ap = (ti.Vector.ndarray(3, ti.f32, shape=n) for _ in range(3))
+        self._sum = Summer(n).total
+
+    def solve(self, position, velocity, fluid, number_density, near, near_count, lay, ftab, wall, dt: float,
+              h: float, kern: int) -> tuple[int, float]:
+        """Replace `velocity` (v*) by the solution of A v = M v*. Returns (iterations, the final
+        residual relative to the first)."""
+        k_first_residual(position, velocity, fluid, number_density, near, near_count, lay, ftab, wall, dt, h,
+                         self.diag, self.res, self.p, self.rr, self.rz, kern)
+        rr0, rz = self._sum(self.rr), self._sum(self.rz)
+        if rr0 <= 0.0:
+            return 0, 0.0
+        rr, iterations = rr0, 0
+        while iterations < self.max_iterations and rr > self.tolerance ** 2 * rr0:
+            k_product(position, fluid, number_density, near, near_count, lay, ftab, wall, dt, h, self.p, self.ap,
+                      self.rr, kern)
+            pap = self._sum(self.rr)
+            if not pap > 0.0:       # round-off at convergence, or a broken matrix: stop where we are
+                break
+            k_move(velocity, self.res, self.p, self.ap, self.diag, rz / pap, self.rr, self.rz)
+            rr, rz_next = self._sum(self.rr), self._sum(self.rz)
+            iterations += 1
+            k_turn(self.res, self.p, self.diag, rz_next / rz if rz > 0 else 0.0)
+            rz = rz_next
+        return iterations, math.sqrt(rr / rr0)
