@@ -36,8 +36,13 @@ def scene(particles: int, radius: float, solver: str = "dfsph", cfl: float = 0.8
     """The anchor tank, with a water block of about `particles` particles at the left end.
 
     DFSPH runs with the anchor's settings (../shared/anchors/solver/dambreak_dfsph.json):
-    mean density error 0.05 %, divergence error 0.1 %, and its CFL step (cflFactor 1: dt =
-    0.4 x 2r / v_max, i.e. sim.cfl = 0.8 radii a step)."""
+    mean density error 0.05 %, divergence error 0.1 %, its CFL step (cflFactor 1: dt =
+    0.4 x 2r / v_max, i.e. sim.cfl = 0.8 radii a step) and its fluid: SPlisHSPlasH's "Standard
+    viscosity" 0.01 is a kinematic viscosity (a_i = 10 nu sum_j V_j (v_ij . x_ij) /
+    (r^2 + 0.01 h^2) grad W_ij, i.e. nu lap v), so 10 Pa s at 1000 kg/m^3, and its boundary
+    viscosity 0, so free-slip walls. (Until the thirteenth session our side ran Müller's
+    particle-scale viscosity 1.0 instead, a much thinner fluid: a few particles climbed the
+    walls at 5-6.5 m/s and set 1.7x the anchor's steps.) WCSPH keeps Müller's viscosity 1.0."""
     from pipeline.spec import ShotSpec
 
     d = 2 * radius
@@ -53,8 +58,8 @@ def scene(particles: int, radius: float, solver: str = "dfsph", cfl: float = 0.8
         "shot": {"name": "bench", "frame_end": 13, "fps": 24.0},
         "sim": {"particle_radius": radius, "solver": solver,
                 **({"cfl": cfl, "max_density_error": max_density_error} if solver == "dfsph" else {})},
-        "domain": {"min": (0.0, 0.0, -0.3), "max": (1.6, 0.67, 0.3)},
-        "fluids": ({"name": "water", "viscosity": 1.0,
+        "domain": {"min": (0.0, 0.0, -0.3), "max": (1.6, 0.67, 0.3), "no_slip": False},
+        "fluids": ({"name": "water", **({"dynamic_viscosity": 10.0} if solver == "dfsph" else {"viscosity": 1.0}),
                     "blocks": ({"min": (0.0, 0.0, -0.3), "max": (ext[0], ext[1], -0.3 + ext[2])},)},)})
 
 

@@ -49,7 +49,11 @@ from .wcsph import color_tension, morris
 # divergence solve (its neighbourhood is too thin to tell expansion from splashing apart);
 # SPlisHSPlasH uses 20 for a 3D kernel of h = 4 r, whose full neighbourhood holds about 30.
 MIN_DIVERGENCE_NEIGHBOURS = 20
-MIN_ITERATIONS = 2
+# Fewest sweeps of each solve. SPlisHSPlasH takes 2 for the density solve (its `minIterations`)
+# and 1 for the divergence solve; 1 was tried for ours and was 4 % faster on bench/solver.py, but
+# left a resting column and a sinking blob measurably less settled (tests/test_dfsph.py's
+# stays_put and sinks, just past their bounds)
+MIN_DENSITY_ITERATIONS, MIN_DIVERGENCE_ITERATIONS = 2, 2
 # Share of the last step's kappa a solve starts from. The whole of it overshoots where the flow
 # has changed (a particle that left the bulk still gets pushed; measured: the whole density
 # kappa blew a resting column up within 2 s); SPlisHSPlasH takes half.
@@ -301,6 +305,12 @@ class DFSPHSolver(SPHSolver):
     """
     EXTRA = ("kappa_density", "kappa_divergence")
     LISTS_CHECKED_AT_ONCE = True      # DFSPH decides on the host
+    # No Verlet skin: a DFSPH step moves the fastest particle sim.cfl radii (0.4, the bench 0.8),
+    # as far as the WCSPH skin lets anyone move before a rebuild (0.2 h / 2 = 0.4 r), so the
+    # lists were rebuilt nearly every step anyway and the skin only made every sweep longer
+    # (bench/solver.py's dam break, 0.25 s: 141 ms a step without a skin, 154 with 0.2 h, 198
+    # with 0.4 h)
+    SKIN = 0.0
 
     def __init__(self, params: SolverParams, state: dict[str, np.ndarray], time_s: float = 0.0,
                  step: int = 0, dt_prev: float = 0.0, max_density_error: float = 1e-3,
@@ -353,9 +363,10 @@ class DFSPHSolver(SPHSolver):
                          self.prm, self.ftab, self.ghost_t, self.ghost_g, self.visc_t, self.wall_visc,
                          self.ctype, self.cprm, self.sdf, self.kern)
 
-    def _solve(self, kappa_of, total, warm_scale: float, bound: float, dt: float) -> tuple[int, float]:
+    def _solve(self, kappa_of, total, warm_scale: float, bound: float, dt: float,
+               min_iterations: int) -> tuple[int, float]:
         """Jacobi sweeps of equation (1) until kappa_of() reports a mean error under `bound`
-        (at least MIN_ITERATIONS). `total` holds the last solve's kappa times dt^k: it is
+        (at least min_iterations). `total` holds the last solve's kappa times dt^k: it is
         applied first (warm start) and then accumulates this solve's. Returns (sweeps, error)."""
         k_scale(total, warm_scale)
         self._apply(total, self.kappa_density_b, dt)      # a scratch total, thrown away
@@ -363,7 +374,7 @@ class DFSPHSolver(SPHSolver):
         while iterations < self.max_iterations:
             kappa_of()
             err = self._sum(self.residual) / (self.n * self.params.lattice_density)
-            if err <= bound and iterations >= MIN_ITERATIONS:
+            if err <= bound and iterations >= min_iterations:
                 break
             self._apply(self.kappa, total, dt)
             iterations += 1
@@ -378,7 +389,8 @@ class DFSPHSolver(SPHSolver):
         def kappa_of():
             k_divergence_kappa(self.position, self.velocity, self.near, self.near_count, self.lay, self.alpha,
                                self.wall_grad, self.kappa, self.residual, dt, self.h, self.kern)
-        it, err = self._solve(kappa_of, self.kappa_divergence, WARM_START / dt, self.max_divergence_error / dt, dt)
+        it, err = self._solve(kappa_of, self.kappa_divergence, WARM_START / dt, self.max_divergence_error / dt, dt,
+                              MIN_DIVERGENCE_ITERATIONS)
         k_scale(self.kappa_divergence, dt)
         self.counters["divergence_iterations"] += it
         self.counters["divergence_error"] = max(self.counters["divergence_error"], err * dt)
@@ -389,7 +401,8 @@ class DFSPHSolver(SPHSolver):
             k_density_kappa(self.position, self.velocity, self.number_density, self.near, self.near_count,
                             self.lay, self.alpha, self.wall_grad, self.kappa, self.residual, dt, self.prm,
                             self.kern)
-        it, err = self._solve(kappa_of, self.kappa_density, WARM_START / (dt * dt), self.max_density_error, dt)
+        it, err = self._solve(kappa_of, self.kappa_density, WARM_START / (dt * dt), self.max_density_error, dt,
+                              MIN_DENSITY_ITERATIONS)
         k_scale(self.kappa_density, dt * dt)
         self.counters["density_iterations"] += it
         self.counters["density_error"] = max(self.counters["density_error"], err)
