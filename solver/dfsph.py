@@ -357,6 +357,14 @@ class DFSPHSolver(SPHSolver):
             setattr(self, name, b)
             setattr(self, name + "_b", a)
 
+    def update_lists(self) -> None:
+        """With no skin, the lists are built at the current positions every step: also on
+        resuming, where a checkpoint's reference positions (written mid-frame, on a stop) are
+        those of the last step's start, and lists built there would miss the pairs that came
+        within h during it (and differ from an uninterrupted run's)."""
+        self._lists_from_ref = False
+        super().update_lists()
+
     def compute_density(self) -> None:
         k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.wall_grad,
                          self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
