@@ -339,7 +339,7 @@ class DFSPHSolver(SPHSolver):
         self.visc_t = ti.ndarray(ti.f32, (1, 25))
         wall = K.wall_viscosity_table(params.pressure_kind, self.h, params.particle_radius)
         self.visc_t.from_numpy(wall if params.no_slip else np.zeros_like(wall))    # free slip: no pull
-        self.implicit = ImplicitViscosity(n) if math.isfinite(self.dt_eta) else None
+        self.implicit = None        # the CG's arrays, made on the first step past dt_eta
         for name in self.EXTRA:
             a, b = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
             a.from_numpy(np.asarray(state.get(name, np.zeros(n)), np.float32))
@@ -430,10 +430,12 @@ class DFSPHSolver(SPHSolver):
     def kick(self, dt: float) -> None:
         """v* = v + dt a (step 5), with Morris's viscosity explicit while dt is within its
         limit and implicit beyond it (solver.viscosity)."""
-        if self.implicit is None or dt <= self.dt_eta:
+        if dt <= self.dt_eta:
             k_kick_both(self.velocity, self.acceleration, self.viscous, dt)
             return
         k_kick(self.velocity, self.acceleration, dt)
+        if self.implicit is None:
+            self.implicit = ImplicitViscosity(self.n)
         it, res = self.implicit.solve(self.position, self.velocity, self.fluid, self.number_density, self.near,
                                       self.near_count, self.lay, self.ftab, self.wall_visc, dt, self.h, self.kern)
         self.counters["viscosity_steps"] += 1
