@@ -74,7 +74,7 @@ def solver_section(limit: float) -> None:
     for solver in ("wcsph", "dfsph"):
         for n in (int(1_000_000 * SCALE), int(4_000_000 * SCALE)):
             rc, out = run([PY, "bench/solver.py", "--only", "sphshot", "--solver", solver, "--backend", BACKEND,
-                           "--particles", str(n), "--radius", str(radius_for(n)), "--stop-at", "0.02",
+                           "--fluid", "thin", "--particles", str(n), "--radius", str(radius_for(n)), "--stop-at", "0.02",
                            "--device-bytes"], limit / 4)
             line = next((l for l in out.splitlines() if l.startswith("sphshot")), None)
             print(line or out[-1500:], flush=True)
@@ -91,7 +91,7 @@ def solver_section(limit: float) -> None:
 def dambreak_section(limit: float) -> None:
     n = int(1_000_000 * SCALE)
     rc, out = run([PY, "bench/solver.py", "--only", "sphshot", "--solver", "dfsph", "--backend", BACKEND,
-                   "--particles", str(n), "--radius", str(radius_for(n)), "--stop-at", "0.25"], limit)
+                   "--fluid", "thin", "--particles", str(n), "--radius", str(radius_for(n)), "--stop-at", "0.25"], limit)
     line = next((l for l in out.splitlines() if l.startswith("sphshot")), None)
     print(line or out[-1500:], flush=True)
     if line:
@@ -113,7 +113,7 @@ sb._current, sb._arch_name = (backend, 0), backend
 sys.argv = sys.argv[:1]
 from bench.solver import scene
 from pipeline.stages.sim import initial_state, make_solver, solver_params
-spec = scene(n, 0.006 * (50_232 / n) ** (1 / 3), "dfsph")
+spec = scene(n, 0.006 * (50_232 / n) ** (1 / 3), "dfsph", fluid="thin")
 params = solver_params(spec)
 s = make_solver(spec, params, initial_state(spec, params))
 for _ in range(5):

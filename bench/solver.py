@@ -32,7 +32,7 @@ ANCHOR = ROOT.parent / "shared" / "anchors" / "solver" / "bench_splishsplash.sh"
 
 
 def scene(particles: int, radius: float, solver: str = "dfsph", cfl: float = 0.8,
-          max_density_error: float = 0.0005):
+          max_density_error: float = 0.0005, fluid: str = "anchor"):
     """The anchor tank, with a water block of about `particles` particles at the left end.
 
     DFSPH runs with the anchor's settings (../shared/anchors/solver/dambreak_dfsph.json):
@@ -42,7 +42,8 @@ def scene(particles: int, radius: float, solver: str = "dfsph", cfl: float = 0.8
     (r^2 + 0.01 h^2) grad W_ij, i.e. nu lap v), so 10 Pa s at 1000 kg/m^3, and its boundary
     viscosity 0, so free-slip walls. (Until the thirteenth session our side ran Müller's
     particle-scale viscosity 1.0 instead, a much thinner fluid: a few particles climbed the
-    walls at 5-6.5 m/s and set 1.7x the anchor's steps.) WCSPH keeps Müller's viscosity 1.0."""
+    walls at 5-6.5 m/s and set 1.7x the anchor's steps.) WCSPH, and DFSPH with fluid="thin"
+    (what bench/gpu.py's GPU figures have used from the start), keep Müller's viscosity 1.0."""
     from pipeline.spec import ShotSpec
 
     d = 2 * radius
@@ -59,7 +60,8 @@ def scene(particles: int, radius: float, solver: str = "dfsph", cfl: float = 0.8
         "sim": {"particle_radius": radius, "solver": solver,
                 **({"cfl": cfl, "max_density_error": max_density_error} if solver == "dfsph" else {})},
         "domain": {"min": (0.0, 0.0, -0.3), "max": (1.6, 0.67, 0.3), "no_slip": False},
-        "fluids": ({"name": "water", **({"dynamic_viscosity": 10.0} if solver == "dfsph" else {"viscosity": 1.0}),
+        "fluids": ({"name": "water", **({"dynamic_viscosity": 10.0} if solver == "dfsph" and fluid == "anchor"
+                                        else {"viscosity": 1.0}),
                     "blocks": ({"min": (0.0, 0.0, -0.3), "max": (ext[0], ext[1], -0.3 + ext[2])},)},)})
 
 
@@ -73,7 +75,7 @@ def child(args) -> None:
     if args.skin is not None:
         from solver.sph import SPHSolver
         SPHSolver.SKIN = args.skin
-    spec = scene(args.particles, args.radius, args.solver)
+    spec = scene(args.particles, args.radius, args.solver, fluid=args.fluid)
     params = solver_params(spec)
     t0 = time.perf_counter()
     s = make_solver(spec, params, initial_state(spec, params))
@@ -118,7 +120,7 @@ def device_bytes(solver) -> int:
 def run_sphshot(args) -> dict:
     cmd = [sys.executable, __file__, "--child", "--stop-at", str(args.stop_at), "--backend", args.backend,
            "--threads", str(args.threads), "--particles", str(args.particles), "--radius", str(args.radius),
-           "--solver", args.solver]
+           "--solver", args.solver, "--fluid", args.fluid]
     if args.phases:
         cmd.append("--phases")
     if args.device_bytes:
@@ -164,6 +166,8 @@ def main() -> None:
     ap.add_argument("--radius", type=float, default=0.006)
     ap.add_argument("--solver", default="dfsph", choices=("dfsph", "wcsph"), help="sphshot's solver")
     ap.add_argument("--anchor-solvers", default="wcsph,dfsph")
+    ap.add_argument("--fluid", default="anchor", choices=("anchor", "thin"),
+                    help="DFSPH's fluid: the anchor's (nu 0.01 m^2/s, free slip) or Müller's viscosity 1.0")
     ap.add_argument("--phases", action="store_true", help="time each step phase (adds syncs)")
     ap.add_argument("--device-bytes", action="store_true", help="report the solver's device bytes per particle")
     ap.add_argument("--skin", type=float, help="Verlet skin in units of h (default: the solver's)")
