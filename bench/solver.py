@@ -114,7 +114,8 @@ def device_bytes(solver) -> int:
     """Bytes of the solver's Taichi arrays (particles, neighbour lists, grid, boundary tables)."""
     from taichi.lang._ndarray import Ndarray
 
-    return sum(a._get_element_size() * a._get_nelement() for a in vars(solver).values() if isinstance(a, Ndarray))
+    arrays = {id(a): a for a in vars(solver).values() if isinstance(a, Ndarray)}     # an alias counts once
+    return sum(a._get_element_size() * a._get_nelement() for a in arrays.values())
 
 
 def run_sphshot(args) -> dict:

@@ -357,6 +357,14 @@ class DFSPHSolver(SPHSolver):
             setattr(self, name, b)
             setattr(self, name + "_b", a)
 
+    def _grow_neighbours(self, cap: int) -> None:
+        super()._grow_neighbours(cap)
+        if self.skin == 0:
+            # without a skin the lists hold only pairs within h: the density pass's copy of those
+            # within h (`near`) can filter them in place (entry k <= m is written after entry m
+            # is read), and the second list's memory (4 bytes a slot) is saved
+            self.near, self.near_count = self.verlet, self.verlet_count
+
     def update_lists(self) -> None:
         """With no skin, the lists are built at the current positions every step: also on
         resuming, where a checkpoint's reference positions (written mid-frame, on a stop) are
