@@ -74,7 +74,8 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
                      prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, visc_t: F2, wall_visc: F1,
                      ctype: I1, cprm: F2, sdf: F1, kern: ti.template()):
     """Number density delta_i = sum_j W_ij + sum_b W_ib, density m_i delta_i and the factor
-    alpha_i; copies the Verlet entries now within h into `near`, as the WCSPH density pass.
+    alpha_i; copies the Verlet entries now within h into `near`, as the WCSPH density pass
+    (without a skin `near` is `verlet` itself, filtered in place: DFSPHSolver._grow_neighbours).
     wall_visc[i]: the no-slip weight 2 eta_i S_i / (delta_i delta0) of the walls near i
     (boundaries.wall_viscosity). `prm`: the constants (types.consts_of, box_of)."""
     h = prm[P_H]
@@ -366,11 +367,12 @@ class DFSPHSolver(SPHSolver):
             self.near, self.near_count = self.verlet, self.verlet_count
 
     def update_lists(self) -> None:
-        """With no skin, the lists are built at the current positions every step: also on
-        resuming, where a checkpoint's reference positions (written mid-frame, on a stop) are
-        those of the last step's start, and lists built there would miss the pairs that came
-        within h during it (and differ from an uninterrupted run's)."""
-        self._lists_from_ref = False
+        """With no skin, the lists are built at the current positions every step, without
+        asking who moved: also on resuming, where a checkpoint's reference positions (written
+        mid-frame, on a stop) are those of the last step's start, and lists built there would
+        miss the pairs that came within h during it (and differ from an uninterrupted run's)."""
+        if self.skin == 0:
+            self._lists_valid = self._lists_from_ref = False
         super().update_lists()
 
     def compute_density(self) -> None:
