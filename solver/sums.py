@@ -2,7 +2,7 @@
 import numpy as np
 import taichi as ti
 
-from .types import F1
+from .types import F1, F2
 
 CHUNK = 1024            # particles a thread sums, in order
 
@@ -22,12 +22,36 @@ def k_chunk_sums(a: F1, partial: F1):
         partial[c] = s
 
 
+@ti.kernel
+def k_chunk_sums2(a: F1, b: F1, partial: F2):
+    """partial[0, c], partial[1, c]: k_chunk_sums of a and of b, in one pass."""
+    n = a.shape[0]
+    for c in range(partial.shape[1]):
+        s, t = 0.0, 0.0
+        for k in range(CHUNK):
+            i = c * CHUNK + k
+            if i < n:
+                s += a[i]
+                t += b[i]
+        partial[0, c] = s
+        partial[1, c] = t
+
+
 class Summer:
-    """total(a): the sum of an (n,) float32 ndarray, in float64 on the host."""
+    """total(a): the sum of an (n,) float32 ndarray, in float64 on the host; totals(a, b): two
+    sums for one read-back (on a GPU each read-back waits for the device)."""
 
     def __init__(self, n: int):
         self.partial = ti.ndarray(ti.f32, (n + CHUNK - 1) // CHUNK)
+        self.partial2 = None
 
     def total(self, a) -> float:
         k_chunk_sums(a, self.partial)
         return float(self.partial.to_numpy().sum(dtype=np.float64))
+
+    def totals(self, a, b) -> tuple[float, float]:
+        if self.partial2 is None:
+            self.partial2 = ti.ndarray(ti.f32, (2, self.partial.shape[0]))
+        k_chunk_sums2(a, b, self.partial2)
+        s = self.partial2.to_numpy().sum(axis=1, dtype=np.float64)
+        return float(s[0]), float(s[1])

@@ -107,7 +107,8 @@ class ImplicitViscosity:
         self.tolerance, self.max_iterations = float(tolerance), int(max_iterations)
         self.diag, self.rr, self.rz = (ti.ndarray(ti.f32, n) for _ in range(3))
         self.res, self.p, self.ap = (ti.Vector.ndarray(3, ti.f32, shape=n) for _ in range(3))
-        self._sum = Summer(n).total
+        summer = Summer(n)
+        self._sum, self._sums = summer.total, summer.totals
 
     def solve(self, position, velocity, fluid, number_density, near, near_count, lay, ftab, wall, dt: float,
               h: float, kern: int) -> tuple[int, float]:
@@ -115,7 +116,7 @@ class ImplicitViscosity:
         residual relative to the first)."""
         k_first_residual(position, velocity, fluid, number_density, near, near_count, lay, ftab, wall, dt, h,
                          self.diag, self.res, self.p, self.rr, self.rz, kern)
-        rr0, rz = self._sum(self.rr), self._sum(self.rz)
+        rr0, rz = self._sums(self.rr, self.rz)
         if rr0 <= 0.0:
             return 0, 0.0
         rr, iterations = rr0, 0
@@ -126,7 +127,7 @@ class ImplicitViscosity:
             if not pap > 0.0:       # round-off at convergence, or a broken matrix: stop where we are
                 break
             k_move(velocity, self.res, self.p, self.ap, self.diag, rz / pap, self.rr, self.rz)
-            rr, rz_next = self._sum(self.rr), self._sum(self.rz)
+            rr, rz_next = self._sums(self.rr, self.rz)
             iterations += 1
             k_turn(self.res, self.p, self.diag, rz_next / rz if rz > 0 else 0.0)
             rz = rz_next
