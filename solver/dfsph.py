@@ -70,12 +70,14 @@ SPEED_FLOOR = 0.25
 
 @ti.kernel
 def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, alpha: F1, wall_grad: V3,
-                     verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
+                     verlet: I1, verlet_count: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
                      prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, visc_t: F2, wall_visc: F1,
                      ctype: I1, cprm: F2, sdf: F1, kern: ti.template()):
     """Number density delta_i = sum_j W_ij + sum_b W_ib, density m_i delta_i and the factor
     alpha_i; copies the Verlet entries now within h into `near`, as the WCSPH density pass
-    (without a skin `near` is `verlet` itself, filtered in place: DFSPHSolver._grow_neighbours).
+    (without a skin `near` is `verlet` itself, filtered in place: DFSPHSolver._grow_neighbours),
+    and beside each entry the pair's dW/dr / r (`gfac`), so that the solves' sweeps, at these
+    same positions, take grad W_ij = gfac x_ij without a square root or the kernel's pieces.
     wall_visc[i]: the no-slip weight 2 eta_i S_i / (delta_i delta0) of the walls near i
     (boundaries.wall_viscosity). `prm`: the constants (types.consts_of, box_of)."""
     h = prm[P_H]
@@ -92,11 +94,15 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
             rv = xi - position[j]
             r2 = rv.norm_sqr()
             inside = (r2 < h * h) & (r2 > 1e-18)
-            near[base + k * lay.y] = j
+            slot = base + k * lay.y
+            near[slot] = j
             k += ti.select(inside, 1, 0)
             if inside:
                 s += K.w_r2(kern, r2, h)
-                g = K.grad_w(kern, rv, ti.sqrt(r2), h)
+                r = ti.sqrt(r2)
+                f = K.dw(kern, r, h) / r
+                gfac[slot] = f
+                g = f * rv
                 grad_sum += g
                 sq += g.norm_sqr() / ftab[fluid[j], F_MASS]
         near_count[i] = k
@@ -117,47 +123,45 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
 
 @ti.func
 def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.template(),
-                 near_count: ti.template(), lay: ivec2, wall_grad: ti.template(), h: ti.f32,
-                 kern: ti.template()):
+                 near_count: ti.template(), gfac: ti.template(), lay: ivec2, wall_grad: ti.template()):
     """D delta_i / Dt = sum_j (v_i - v_j) . grad W_ij + v_i . sum_b grad W_ib (samples at rest)."""
     xi, vi = position[i], velocity[i]
     rate = vi.dot(wall_grad[i])
     base = i * lay.x
     for m in range(near_count[i]):
         j = near[base + m * lay.y]
-        rv = xi - position[j]
-        rate += (vi - velocity[j]).dot(K.grad_w(kern, rv, rv.norm(), h))
+        rate += (vi - velocity[j]).dot(gfac[base + m * lay.y] * (xi - position[j]))
     return rate
 
 
 @ti.kernel
-def k_divergence_kappa(position: V3, velocity: V3, near: I1, near_count: I1, lay: ivec2, alpha: F1,
-                       wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32, h: ti.f32, kern: ti.template()):
+def k_divergence_kappa(position: V3, velocity: V3, near: I1, near_count: I1, gfac: F1, lay: ivec2, alpha: F1,
+                       wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32):
     """kappa_i = alpha_i max(D delta_i / Dt, 0) / dt for particles with a full neighbourhood;
     residual[i] the rate each compresses at."""
     for i in position:
-        rate = density_rate(i, velocity, position, near, near_count, lay, wall_grad, h, kern)
+        rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad)
         rate = ti.select((rate > 0.0) & (near_count[i] >= MIN_DIVERGENCE_NEIGHBOURS), rate, 0.0)
         kappa[i] = alpha[i] * rate / dt
         residual[i] = rate
 
 
 @ti.kernel
-def k_density_kappa(position: V3, velocity: V3, number_density: F1, near: I1, near_count: I1, lay: ivec2,
-                    alpha: F1, wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32, prm: F1, kern: ti.template()):
+def k_density_kappa(position: V3, velocity: V3, number_density: F1, near: I1, near_count: I1, gfac: F1,
+                    lay: ivec2, alpha: F1, wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32, prm: F1):
     """kappa_i = alpha_i max(delta*_i - delta0, 0) / dt^2 with delta* = delta + dt D delta / Dt;
     residual[i] the compression delta* - delta0 (clamped at 0)."""
     for i in position:
         c = consts_of(prm)
-        rate = density_rate(i, velocity, position, near, near_count, lay, wall_grad, c.h, kern)
+        rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad)
         excess = ti.max(number_density[i] + dt * rate - c.lattice, 0.0)
         kappa[i] = alpha[i] * excess / (dt * dt)
         residual[i] = excess
 
 
 @ti.kernel
-def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I1, lay: ivec2,
-                  kappa: F1, total: F1, wall_grad: V3, dt: ti.f32, h: ti.f32, ftab: F2, kern: ti.template()):
+def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
+                  kappa: F1, total: F1, wall_grad: V3, dt: ti.f32, ftab: F2):
     """Equation (1) with this sweep's kappa; total += kappa (the step's pressure, and the next
     step's warm start)."""
     for i in position:
@@ -167,8 +171,7 @@ def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I
         base = i * lay.x
         for m in range(near_count[i]):
             j = near[base + m * lay.y]
-            rv = xi - position[j]
-            push += (ki + kappa[j]) * K.grad_w(kern, rv, rv.norm(), h)
+            push += (ki + kappa[j]) * gfac[base + m * lay.y] * (xi - position[j])
         velocity[i] -= dt / ftab[fluid[i], F_MASS] * push
         total[i] += ki
 
@@ -360,6 +363,7 @@ class DFSPHSolver(SPHSolver):
 
     def _grow_neighbours(self, cap: int) -> None:
         super()._grow_neighbours(cap)
+        self.gfac = ti.ndarray(ti.f32, max(self.n * self.nb_cap, 1))     # dW/dr / r beside each `near` entry
         if self.skin == 0:
             # without a skin the lists hold only pairs within h: the density pass's copy of those
             # within h (`near`) can filter them in place (entry k <= m is written after entry m
@@ -377,7 +381,7 @@ class DFSPHSolver(SPHSolver):
 
     def compute_density(self) -> None:
         k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.wall_grad,
-                         self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
+                         self.verlet, self.verlet_count, self.near, self.near_count, self.gfac, self.lay,
                          self.prm, self.ftab, self.ghost_t, self.ghost_g, self.visc_t, self.wall_visc,
                          self.ctype, self.cprm, self.sdf, self.kern)
 
@@ -399,14 +403,14 @@ class DFSPHSolver(SPHSolver):
         return iterations, err
 
     def _apply(self, kappa, total, dt: float) -> None:
-        k_apply_kappa(self.position, self.velocity, self.fluid, self.near, self.near_count, self.lay,
-                      kappa, total, self.wall_grad, dt, self.h, self.ftab, self.kern)
+        k_apply_kappa(self.position, self.velocity, self.fluid, self.near, self.near_count, self.gfac, self.lay,
+                      kappa, total, self.wall_grad, dt, self.ftab)
 
     def divergence_solve(self, dt: float) -> None:
         """Make the velocity field divergence-free where it compresses (step 2)."""
         def kappa_of():
-            k_divergence_kappa(self.position, self.velocity, self.near, self.near_count, self.lay, self.alpha,
-                               self.wall_grad, self.kappa, self.residual, dt, self.h, self.kern)
+            k_divergence_kappa(self.position, self.velocity, self.near, self.near_count, self.gfac, self.lay,
+                               self.alpha, self.wall_grad, self.kappa, self.residual, dt)
         it, err = self._solve(kappa_of, self.kappa_divergence, WARM_START / dt, self.max_divergence_error / dt, dt,
                               MIN_DIVERGENCE_ITERATIONS)
         k_scale(self.kappa_divergence, dt)
@@ -417,8 +421,7 @@ class DFSPHSolver(SPHSolver):
         """Correct v* so the predicted number density is delta0 where compressed (step 6)."""
         def kappa_of():
             k_density_kappa(self.position, self.velocity, self.number_density, self.near, self.near_count,
-                            self.lay, self.alpha, self.wall_grad, self.kappa, self.residual, dt, self.prm,
-                            self.kern)
+                            self.gfac, self.lay, self.alpha, self.wall_grad, self.kappa, self.residual, dt, self.prm)
         it, err = self._solve(kappa_of, self.kappa_density, WARM_START / (dt * dt), self.max_density_error, dt,
                               MIN_DENSITY_ITERATIONS)
         k_scale(self.kappa_density, dt * dt)
