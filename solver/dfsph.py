@@ -43,7 +43,7 @@ from .sph import SPHSolver
 from .sums import Summer
 from .types import F1, F2, F4, I1, P_H, V3, box_of, consts_of, ivec2, raise_max, vec3
 from .viscosity import ImplicitViscosity
-from .wcsph import color_tension, morris
+from .wcsph import color_tension
 
 # A particle with fewer neighbours than this is at a free surface and takes no part in the
 # divergence solve (its neighbourhood is too thin to tell expansion from splashing apart);
@@ -184,7 +184,7 @@ def k_scale(a: F1, factor: ti.f32):
 
 @ti.kernel
 def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
-                  near: I1, near_count: I1, lay: ivec2, prm: F1, ftab: F2, stats: F1, dt_guess: ti.f32,
+                  near: I1, near_count: I1, gfac: F1, lay: ivec2, prm: F1, ftab: F2, stats: F1, dt_guess: ti.f32,
                   normal: V3, viscous: V3, wall_visc: F1, kern: ti.template(), tension: ti.template()):
     """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
     raised to the largest |v + a dt_guess| (the CFL speed). Morris's term goes to `viscous`,
@@ -223,7 +223,9 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
             fj = fluid[j]
             mu = 0.5 * (ftab[fi, F_MU] + ftab[fj, F_MU])
             a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
-            a_eta += morris(ftab[fi, F_ETA] + ftab[fj, F_ETA], dj, rv, r, h, vi - velocity[j], kern)
+            # Morris's pair term (wcsph.morris) with x_ij . grad W_ij = gfac r^2 from the density pass
+            a_eta += ((ftab[fi, F_ETA] + ftab[fj, F_ETA]) / dj * gfac[base + m * lay.y] * r * r
+                      / (r * r + 0.01 * h * h) * (vi - velocity[j]))
             smooth += (velocity[j] - vi) * K.w(kern, r, h) / dj
             if ti.static(tension == MUELLER):
                 n += K.grad_w(K.POLY6, rv, r, h) / dj
@@ -436,7 +438,7 @@ class DFSPHSolver(SPHSolver):
             k_surface_normals(self.position, self.number_density, self.near, self.near_count, self.lay, self.h,
                               self.normal, self.kern)
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
-                      self.density, self.near, self.near_count, self.lay, self.prm, self.ftab,
+                      self.density, self.near, self.near_count, self.gfac, self.lay, self.prm, self.ftab,
                       self.stats, guess, self.normal, self.viscous, self.wall_visc, self.kern, mode)
         self.vmax = float(self.stats.to_numpy()[0])
 
@@ -450,7 +452,7 @@ class DFSPHSolver(SPHSolver):
         if self.implicit is None:
             self.implicit = ImplicitViscosity(self.n)
         it, res = self.implicit.solve(self.position, self.velocity, self.fluid, self.number_density, self.near,
-                                      self.near_count, self.lay, self.ftab, self.wall_visc, dt, self.h, self.kern)
+                                      self.near_count, self.gfac, self.lay, self.ftab, self.wall_visc, dt, self.h)
         self.counters["viscosity_steps"] += 1
         self.counters["viscosity_iterations"] += it
         self.counters["viscosity_residual"] = max(self.counters["viscosity_residual"], res)
