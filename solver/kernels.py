@@ -275,9 +275,11 @@ def wall_viscosity_table(pressure_kind: int, h: float, radius: float, n: int = 2
     """Morris et al. 1997's viscous weight of the boundary samples beyond one plane wall, for a
     wall at rest (no slip): with the half-space lattice of `ghost_tables` and
     -x_ib . grad W_ib = |W'| r,
-        S(a) = sum_b |W'(r)| r / (r^2 + 0.01 h^2)
-    so that the wall adds (2 eta_i S / (delta_i delta0)) (0 - v_i) to m_i dv_i / dt, as a
-    mirrored fluid at rest would (solver.viscosity). Returns (1, n), sampled on [0, h]."""
+        S(a) = sum_b beta_b |W'(r)| r / (r^2 + 0.01 h^2)
+    so that the wall adds (2 eta_i S / (delta_i delta0)) (0 - v_i) to m_i dv_i / dt
+    (solver.viscosity). Each sample's term is weighted by Morris's beta = min(BETA_MAX, 1 + d_b / a)
+    (d_b: the sample's depth beyond the wall): the mirrored fluid's velocity extrapolated to zero
+    at the wall, so that the no-slip plane is the wall itself. Returns (1, n), sampled on [0, h]."""
     d = 2.0 * radius
     m = int(math.ceil(h / d)) + 1
     a = np.linspace(0.0, h, n)

@@ -3,7 +3,7 @@ conjugate gradients, matrix-free, as Weiler et al. 2018 solve theirs, so that a 
 (honey, about 10 Pa s) moves with the flow's own time step instead of the explicit limit
 dt < (h / 2)^2 / (8 nu).
 
-The explicit term (solver/wcsph.morris, summed in dfsph.k_nonpressure) is
+The explicit term (wcsph.morris's, summed in dfsph.k_nonpressure) is
 
     m_i dv_i / dt = sum_j w_ij (v_j - v_i),
     w_ij = -(eta_i + eta_j) (x_ij . grad W_ij) / ((|x_ij|^2 + 0.01 h^2) delta_i delta_j)  >= 0
@@ -12,8 +12,9 @@ and the backward step solves, for the new velocities v from v* (after the other 
 
     A v = M v*,   A = M + dt L,   (L v)_i = sum_j w_ij (v_i - v_j) + w_i v_i.
 
-w_i = 2 eta_i S_i / (delta_i delta0) >= 0 is the no-slip pull of the walls and colliders near i,
-taken as fluid at rest beyond them (kernels.wall_viscosity_table). w_ij = w_ji and w_ij >= 0, so
+w_i = 2 eta_i S_i / (delta_i delta0) >= 0 is the no-slip pull of the walls and colliders near i:
+mirrored fluid beyond them, its velocity extrapolated to zero at the wall (Morris et al. 1997,
+kernels.wall_viscosity_table). w_ij = w_ji and w_ij >= 0, so
 L is a weighted graph Laplacian plus a non-negative diagonal and A is symmetric positive
 definite: CG converges, here with A's diagonal m_i + dt sum_j w_ij as the preconditioner. The three
 velocity components share A and are solved together, as one system of 3N unknowns. The solve
@@ -28,6 +29,7 @@ import taichi as ti
 from .params import F_ETA, F_MASS
 from .sums import Summer
 from .types import F1, F2, I1, V3, ivec2
+
 
 @ti.func
 def weight(eta: ti.f32, di: ti.f32, dj: ti.f32, f: ti.f32, r2: ti.f32, h: ti.f32) -> ti.f32:
