@@ -39,7 +39,7 @@ from .boundaries import boundary_sums, wall_viscosity
 from .errors import Unstable
 from .neighbours import k_gather_f1
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
-from .sph import SPHSolver
+from .sph import SPHSolver, explicit_viscous_limit
 from .sums import Summer
 from .types import F1, F2, F4, I1, P_H, V3, box_of, consts_of, ivec2, raise_max, vec3
 from .viscosity import ImplicitViscosity
@@ -292,13 +292,6 @@ def k_pressure(number_density: F1, kappa_dt2: F1, inv_dt2: ti.f32, pressure: F1)
     solve's kappa dt^2."""
     for i in pressure:
         pressure[i] = kappa_dt2[i] * inv_dt2 * number_density[i] ** 2
-
-
-def explicit_viscous_limit(h: float, nu) -> float:
-    """The longest stable explicit step for kinematic viscosities nu (m^2/s): (h / 2)^2 / (8 nu)
-    for the largest (inf without viscosity)."""
-    nu_max = float(np.max(nu))
-    return 0.125 * (0.5 * h) ** 2 / nu_max if nu_max > 0 else math.inf
 
 
 class DFSPHSolver(SPHSolver):

@@ -246,6 +246,20 @@ def ghost_tables(density_kind: int, pressure_kind: int, h: float, radius: float,
     return dens.astype(np.float32), grad.astype(np.float32)
 
 
+def _half_space_samples(h: float, radius: float, n: int):
+    """The boundary samples beyond one plane wall, on the fill lattice (as in `ghost_tables`),
+    seen from a particle at each of n distances a in [0, h] from the wall: (a, X, Y, Z, R), with
+    X the (n, layers, 1, 1) distance along the wall's normal, Y and Z the in-plane offsets and R
+    the (n, layers, rows, columns) distances."""
+    d = 2.0 * radius
+    m = int(math.ceil(h / d)) + 1
+    a = np.linspace(0.0, h, n)
+    X = a[:, None, None, None] + radius + d * np.arange(m)[None, :, None, None]
+    Y = (d * np.arange(-m, m + 1))[None, None, :, None]
+    Z = (d * np.arange(-m, m + 1))[None, None, None, :]
+    return a, X, Y, Z, np.sqrt(X * X + Y * Y + Z * Z)
+
+
 def ghost_moment_tables(pressure_kind: int, h: float, radius: float, n: int = 25):
     """Moment of the boundary samples beyond one plane wall, for the hydrostatic pressure
     extrapolation of Adami, Hu & Adams 2012: sample b gets p_b = p_i + rho_i g.(x_b - x_i).
@@ -255,13 +269,7 @@ def ghost_moment_tables(pressure_kind: int, h: float, radius: float, n: int = 25
         tt(a) = sum_b |W'|/r (x_bi . t)^2         tangential-tangential (any in-plane t)
     so that sum_b (g . x_bi) grad W_ib = nn (g.n) n + tt (g - (g.n) n). Returns (2, n).
     """
-    d = 2.0 * radius
-    m = int(math.ceil(h / d)) + 1
-    a = np.linspace(0.0, h, n)
-    X = a[:, None, None, None] + radius + d * np.arange(m)[None, :, None, None]
-    Y = (d * np.arange(-m, m + 1))[None, None, :, None]
-    Z = (d * np.arange(-m, m + 1))[None, None, None, :]
-    R = np.sqrt(X * X + Y * Y + Z * Z)
+    _a, X, Y, _Z, R = _half_space_samples(h, radius, n)
     f = np.abs(dw_np(pressure_kind, R, h)) / np.maximum(R, 1e-30)
     nn = (f * X * X).sum(axis=(1, 2, 3))
     tt = (f * Y * Y).sum(axis=(1, 2, 3))
@@ -280,13 +288,7 @@ def wall_viscosity_table(pressure_kind: int, h: float, radius: float, n: int = 2
     (solver.viscosity). Each sample's term is weighted by Morris's beta = min(BETA_MAX, 1 + d_b / a)
     (d_b: the sample's depth beyond the wall): the mirrored fluid's velocity extrapolated to zero
     at the wall, so that the no-slip plane is the wall itself. Returns (1, n), sampled on [0, h]."""
-    d = 2.0 * radius
-    m = int(math.ceil(h / d)) + 1
-    a = np.linspace(0.0, h, n)
-    X = a[:, None, None, None] + radius + d * np.arange(m)[None, :, None, None]
-    Y = (d * np.arange(-m, m + 1))[None, None, :, None]
-    Z = (d * np.arange(-m, m + 1))[None, None, None, :]
-    R = np.sqrt(X * X + Y * Y + Z * Z)
+    a, X, _Y, _Z, R = _half_space_samples(h, radius, n)
     beta = np.minimum(BETA_MAX, X / np.maximum(a[:, None, None, None], 1e-30))
     s = (beta * np.abs(dw_np(pressure_kind, R, h)) * R / (R * R + 0.01 * h * h)).sum(axis=(1, 2, 3))
     return s[None, :].astype(np.float32)

@@ -143,8 +143,7 @@ class SPHSolver:
             restitution=params.domain_restitution, friction=params.domain_friction,
             keep=self.KEEP * params.particle_radius), np.float32))
         table = params.fluid_table
-        nu_max = float(np.max(np.maximum(table[:, F_MU], table[:, F_ETA]) / table[:, F_RHO0]))
-        self.dt_visc = 0.125 * (0.5 * h) ** 2 / nu_max if nu_max > 0 else math.inf
+        self.dt_visc = explicit_viscous_limit(h, np.maximum(table[:, F_MU], table[:, F_ETA]) / table[:, F_RHO0])
         self.vmax = 0.0
         self.amax = 0.0
         self.tension = bool((params.fluid_table[:, F_SIGMA] > 0).any())   # compile the color field in?
@@ -365,6 +364,13 @@ class SPHSolver:
 
     def controller(self) -> dict[str, float]:
         return {"time": self.time, "step": self.steps, "dt_prev": self.dt_prev}
+
+
+def explicit_viscous_limit(h: float, nu) -> float:
+    """The longest stable explicit step for kinematic viscosities nu (m^2/s): (h / 2)^2 / (8 nu)
+    for the largest (inf without viscosity)."""
+    nu_max = float(np.max(nu))
+    return 0.125 * (0.5 * h) ** 2 / nu_max if nu_max > 0 else math.inf
 
 
 OPEN_FAR = 1e6     # m: where an open face's wall goes (no wall samples, no collision)
