@@ -305,7 +305,7 @@ class Material(Strict):
 
 class Render(Strict):
     # a preset for the keys below that the job leaves unset (render.LOOKS): "water" translucent
-    # and glossy under a sky, "clay" matte grey for reading form, "preview" the opaque blue of old
+    # and reflecting a studio sky, "clay" matte grey for reading form, "preview" the opaque blue of old
     look: Literal["water", "clay", "preview"] = "water"
     mode: Literal["surface", "particles"] = "surface"
     color_by: Literal["fluid", "speed"] = "fluid"
