@@ -35,11 +35,11 @@ LOOKS = {
     "water": {"background": (0.66, 0.73, 0.80), "background_top": (0.52, 0.63, 0.77), "domain": False,
               "ground_color": (0.50, 0.52, 0.54), "ground_size": 30.0, "shading": "ibl", "opacity": 0.55,
               "roughness": 0.05, "metallic": 0.0,
-              "tint": (0.0, 0.30, 0.40), "spray_color": (0.93, 0.97, 1.0)},
+              "tint": (0.0, 0.30, 0.40), "spray_color": (0.93, 0.97, 1.0), "shadow": 0.45},
     "clay": {"background": (0.55, 0.55, 0.56), "background_top": (0.45, 0.46, 0.48), "domain": False,
              "ground_color": (0.42, 0.42, 0.43), "ground_size": 30.0, "shading": "phong", "opacity": 1.0,
              "specular": 0.08, "specular_power": 10.0, "ambient": 0.25, "diffuse": 0.8,
-             "color": (0.80, 0.78, 0.74), "spray_color": (0.80, 0.78, 0.74)},
+             "color": (0.80, 0.78, 0.74), "spray_color": (0.80, 0.78, 0.74), "shadow": 0.5},
     "preview": {"background": (0.08, 0.09, 0.11), "background_top": (0.32, 0.36, 0.42), "domain": True,
                 "ground_color": (0.42, 0.42, 0.44), "ground_size": 3.0, "shading": "pbr", "opacity": None,
                 "spray_color": (0.85, 0.9, 1.0)},
@@ -103,8 +103,12 @@ class FrameRenderer:
         self._lights(pl)
         if look["shading"] == "ibl":
             self._environment(pl)
+        self.shadow = None
         if r.ground:
             self._ground(pl)
+            if look.get("shadow"):
+                self.shadow = ContactShadow(pv, spec.domain.min, spec.domain.max, look["shadow"], self._ground_rgb)
+                pl.add_mesh(self.shadow.layer, scalars="rgb", rgb=True, lighting=False)
         if look["domain"]:
             lo, hi = spec.domain.min, spec.domain.max
             box = pv.Box(bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])).outline()
@@ -117,6 +121,8 @@ class FrameRenderer:
                 # and where the two coincide their depths fought, speckling the collider
                 actor.mapper.SetResolveCoincidentTopologyToPolygonOffset()
                 actor.mapper.SetRelativeCoincidentTopologyPolygonOffsetParameters(-4.0, -4.0)
+        if self.shadow is not None and r.colliders:
+            self.shadow.cast_still([m for m, _col in collider_meshes(spec)])
         if r.ssaa:
             pl.enable_anti_aliasing("ssaa")
         self.pl = pl
@@ -175,12 +181,19 @@ class FrameRenderer:
             return
         plane = self.pv.Plane(center=(centre[0], lo[1] - 1e-4, centre[2]), direction=(0, 1, 0),
                               i_size=size[0], j_size=size[2], i_resolution=96, j_resolution=96)
-        reach = float(np.linalg.norm(hi - lo))
-        dist = np.linalg.norm((np.asarray(plane.points) - centre)[:, [0, 2]], axis=1)
-        t = np.clip((dist - 0.6 * reach) / (2.5 * reach), 0.0, 1.0)[:, None] ** 0.7
-        rgb = (1 - t) * np.asarray(look["ground_color"]) + t * np.asarray(look["background"])
-        plane.point_data["rgb"] = (rgb * 255).astype(np.uint8)
+        plane.point_data["rgb"] = np.round(self._ground_rgb(plane.points) * 255).astype(np.uint8)
         pl.add_mesh(plane, scalars="rgb", rgb=True, lighting=False)
+
+    def _ground_rgb(self, points) -> np.ndarray:
+        """The unlit ground's color at these points: the ground color out to 0.6 of the
+        domain's diagonal from its centre (or to the contact shadow's corners), then fading
+        to the background's bottom color."""
+        lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
+        centre, reach = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+        flat = max(0.6 * reach, ContactShadow.corner(lo, hi))
+        dist = np.linalg.norm((np.asarray(points) - centre)[:, [0, 2]], axis=1)
+        t = np.clip((dist - flat) / (2.5 * reach), 0.0, 1.0)[:, None] ** 0.7
+        return (1 - t) * np.asarray(self.look["ground_color"]) + t * np.asarray(self.look["background"])
 
     def _fluid_meshes(self, frame: int, paths):
         pv, spec = self.pv, self.spec
@@ -243,6 +256,8 @@ class FrameRenderer:
             pl.remove_actor(actor, render=False)
         meshes = self._fluid_meshes(frame, paths)
         self.fluid_actors = [pl.add_mesh(mesh, **kw) for mesh, kw in meshes]
+        if self.shadow is not None:
+            self.shadow.cast([m for m, _kw in meshes])
         cam = camera_at(r, frame)
         pl.camera.position = cam.position
         pl.camera.focal_point = cam.focal_point
@@ -273,6 +288,85 @@ class FrameRenderer:
 
     def close(self) -> None:
         self.pl.close()
+
+
+class ContactShadow:
+    """A soft contact shadow on the floor where the floor is unlit (the water and clay looks),
+    as the sky's soft boxes overhead would cast it: every triangle's area projected straight
+    down, summed per texel, blurred, and drawn as an opaque layer just above the ground in the
+    ground's own color darkened by that opacity. (Cast along the key light, which stands by the
+    camera, it fell behind the water, out of sight; as a translucent black layer it was not
+    drawn at all without SSAA: VTK's order-independent translucency.) Colliders cast theirs once
+    (cast_still), the fluid each frame (cast); a translucent fluid casts a lighter one."""
+
+    TEXELS = 192            # along the layer's longer side
+    STILL = 0.65            # opacity under a deep opaque collider
+
+    MARGIN = 0.15           # of the domain's diagonal, around it: room for the blur
+
+    @classmethod
+    def corner(cls, lo, hi) -> float:
+        """How far the layer reaches from the domain's centre, across the floor."""
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        return float(np.hypot(*(0.5 * (hi - lo)[[0, 2]] + cls.MARGIN * np.linalg.norm(hi - lo))))
+
+    def __init__(self, pv, lo, hi, strength: float, ground_rgb=lambda points: np.full((len(points), 3), 0.5)):
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        self.floor, self.strength = lo[1], strength
+        reach = self.MARGIN * float(np.linalg.norm(hi - lo))
+        self.origin = np.array([lo[0] - reach, lo[2] - reach])
+        extent = np.array([hi[0] - lo[0], hi[2] - lo[2]]) + 2 * reach
+        self.texel = float(extent.max()) / self.TEXELS
+        self.shape = tuple(np.ceil(extent / self.texel).astype(int) + 1)
+        self.blur = 0.03 * float(np.linalg.norm(hi - lo)) / self.texel
+        gx, gz = np.meshgrid(*(self.origin[k] + self.texel * np.arange(self.shape[k]) for k in (0, 1)),
+                             indexing="ij")
+        points = np.column_stack([gx.ravel(), np.full(gx.size, self.floor - 0.5e-4), gz.ravel()])
+        nx, nz = self.shape
+        i, k = np.meshgrid(np.arange(nx - 1), np.arange(nz - 1), indexing="ij")
+        a = (i * nz + k).ravel()
+        quads = np.column_stack([np.full(a.size, 4), a, a + 1, a + nz + 1, a + nz])
+        self.layer = pv.PolyData(points, faces=quads.ravel())
+        self.ground = np.asarray(ground_rgb(points), float)
+        self.layer.point_data["rgb"] = np.round(self.ground * 255).astype(np.uint8)
+        self.still = np.zeros(self.shape)
+
+    def _opacity(self, meshes) -> np.ndarray:
+        """1 - exp(-projected area / texel area / 2): a closed surface projects twice."""
+        total = np.zeros(self.shape)
+        for m in meshes:
+            faces = getattr(m, "regular_faces", None) if m.n_cells else None
+            if faces is None or len(faces) == 0 or faces.shape[1] != 3:
+                continue
+            tri = np.asarray(m.points, np.float64)[faces]
+            if np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max() > 4 * self.texel:
+                # each triangle counts at its centre, a texel or two off under the blur (about 5
+                # texels): split large ones (a box collider's), not the fluid's
+                m = m.subdivide_adaptive(max_edge_len=self.texel)
+                tri = np.asarray(m.points, np.float64)[m.regular_faces]
+            area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+            c = tri.mean(axis=1)
+            hist, _, _ = np.histogram2d(
+                c[:, 0], c[:, 2], bins=self.shape, weights=area,
+                range=[(self.origin[k] - 0.5 * self.texel, self.origin[k] + (self.shape[k] - 0.5) * self.texel)
+                       for k in (0, 1)])
+            total += hist
+        from scipy.ndimage import gaussian_filter
+
+        return gaussian_filter(1.0 - np.exp(-0.5 * total / self.texel ** 2), self.blur)
+
+    def cast_still(self, meshes) -> None:
+        self.still = self.STILL * self._opacity(meshes)
+        self._show(self.still)
+
+    def cast(self, meshes) -> None:
+        self._show(1.0 - (1.0 - self.still) * (1.0 - self.strength * self._opacity(meshes)))
+
+    def _show(self, opacity: np.ndarray) -> None:
+        self.opacity = np.clip(opacity, 0, 1)
+        rgb = self.layer.point_data["rgb"]
+        rgb[:] = np.round(255 * self.ground * (1 - self.opacity.reshape(-1, 1)))
+        self.layer.GetPointData().GetArray("rgb").Modified()
 
 
 SKY_TEXELS = 64     # a cube face's side: the soft boxes' edges stay sharp in a calm surface
