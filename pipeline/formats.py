@@ -132,3 +132,24 @@ def write_vdb(final: Path, grids) -> Path:
         if sorted(names) != sorted(g.name for g in grids):
             raise OSError(f"{final}: the OpenVDB file written holds {names}, not {[g.name for g in grids]}")
     return final
+
+
+def read_level_set(path: Path, name: str = "surface") -> tuple[np.ndarray, tuple[int, int, int], float] | None:
+    """A level set grid of a .vdb as a dense array over its active bounding box (one voxel of
+    margin), that box's lower index and the voxel size; None if the file has no such grid or
+    it is empty."""
+    import pyopenvdb as vdb
+
+    try:
+        grid = vdb.read(str(path), name)
+    except (KeyError, ValueError, RuntimeError):
+        return None
+    lo, hi = grid.evalActiveVoxelBoundingBox()
+    if grid.activeVoxelCount() == 0:
+        return None
+    lo = tuple(int(v) - 1 for v in lo)
+    shape = tuple(int(b) - int(a) + 2 for a, b in zip(lo, hi))
+    dense = np.full(shape, grid.background, np.float32)
+    grid.copyToArray(dense, ijk=lo)
+    return dense, lo, float(grid.transform.voxelSize()[0])
+

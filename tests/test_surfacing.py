@@ -384,6 +384,43 @@ def test_level_set_agrees_with_mesh_and_radius(sphere_mesh, vdb_file):
     assert (inner < 0).all() and (outer > 0).all(), f"inner {inner}, outer {outer}"
 
 
+def test_water_along_a_view_ray_is_the_chord_of_the_sphere(sphere_mesh, vdb_file):
+    """The render's depth tint measures the water behind a surface point along the view ray
+    (surfacing.thickness, on the .vdb's level set read back densely).
+    - Against the same level set sampled every 1/100 cell along 200 chords of the ball (up to
+      0.95 of its radius off centre, starting on the mesh's mean sphere as rays start on a
+      mesh's vertices): the entry is found within a quarter cell and the exit within half a
+      cell, so within 0.75 cells.
+    - Through the centre: the ball's diameter, within 1.5 cells (the lattice ball's mesh is
+      lumpy by up to 0.7 cells in radius, at each end).
+    - A ray that starts in air, more than two cells from the water, measures none."""
+    from pipeline.formats import read_level_set
+    from surfacing.thickness import ray_thickness, sample
+
+    _field, mesh, _r = sphere_mesh
+    r = np.linalg.norm(mesh.points - CENTRE, axis=1).mean()
+    sdf, index_min, cell = read_level_set(vdb_file[0])
+    assert cell == pytest.approx(CELL)
+    rng = np.random.default_rng(5)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    side = np.cross(d, rng.normal(size=(200, 3)))
+    side /= np.linalg.norm(side, axis=1, keepdims=True)
+    b = r * np.sqrt(rng.random(200)) * 0.95
+    start = CENTRE + b[:, None] * side - np.sqrt(r * r - b * b)[:, None] * d
+    got = ray_thickness(sdf, index_min, cell, start, d, max_length=1.0)
+    s = np.arange(0.0, 2.2 * r, 0.01 * cell)        # brute force: inside at every 1/100 cell
+    inside = np.stack([sample(sdf, index_min, cell, start + t * d, 1.0) < 0 for t in s], 1)
+    first = inside.argmax(axis=1)
+    last = len(s) - 1 - inside[:, ::-1].argmax(axis=1)
+    ref = s[last] - s[first]
+    assert np.abs(got - ref).max() < 0.75 * CELL, np.abs(got - ref).max() / CELL
+    through = ray_thickness(sdf, index_min, cell, CENTRE - r * d[:50], d[:50], max_length=1.0)
+    assert np.abs(through - 2 * r).max() < 1.5 * CELL, np.abs(through - 2 * r).max() / CELL
+    air = ray_thickness(sdf, index_min, cell, CENTRE + 2 * r * d[:5], d[:5], max_length=1.0)
+    np.testing.assert_array_equal(air, 0.0)
+
+
 def test_empty_frame_writes_empty_mesh_and_grids(tmp_path, caplog):
     import pyopenvdb as ov
 

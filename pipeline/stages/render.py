@@ -17,7 +17,7 @@ import numpy as np
 
 from ..cache import atomic_path
 from ..errors import StageError
-from ..formats import read_frame, read_mesh, read_points
+from ..formats import read_frame, read_level_set, read_mesh, read_points
 
 log = logging.getLogger("sphshot")
 
@@ -30,12 +30,16 @@ PNG_LEVEL = 3
 # lit by a procedural studio sky (sky_faces) as well as the lights, so the water reflects the
 # sky and two soft boxes with a Fresnel rise at grazing angles; "phong": a plain highlight;
 # "pbr": as before. Translucency without depth peeling: with Mesa's llvmpipe, peeling left a
-# translucent mesh out of the image altogether (measured), and plain alpha blending draws it.
+# translucent mesh out of the image altogether (measured), and plain alpha blending draws it;
+# with "absorption" (water, where the frame has a level set) each vertex is as opaque as the
+# water behind it is deep (Beer-Lambert, _water_alpha), in lengths of that share of the domain's
+# diagonal. "shadow": the contact shadow's strength under the fluid (ContactShadow).
 LOOKS = {
     "water": {"background": (0.66, 0.73, 0.80), "background_top": (0.52, 0.63, 0.77), "domain": False,
               "ground_color": (0.50, 0.52, 0.54), "ground_size": 30.0, "shading": "ibl", "opacity": 0.55,
               "roughness": 0.05, "metallic": 0.0,
-              "tint": (0.0, 0.30, 0.40), "spray_color": (0.93, 0.97, 1.0), "shadow": 0.45},
+              "tint": (0.0, 0.30, 0.40), "spray_color": (0.93, 0.97, 1.0), "shadow": 0.45,
+              "absorption": 0.15},
     "clay": {"background": (0.55, 0.55, 0.56), "background_top": (0.45, 0.46, 0.48), "domain": False,
              "ground_color": (0.42, 0.42, 0.43), "ground_size": 30.0, "shading": "phong", "opacity": 1.0,
              "specular": 0.08, "specular_power": 10.0, "ambient": 0.25, "diffuse": 0.8,
@@ -216,6 +220,9 @@ class FrameRenderer:
             return out
 
         look = self.look
+        level_set = None
+        if look.get("absorption") and paths.vdb and paths.surface_vdb(frame).exists():
+            level_set = read_level_set(paths.surface_vdb(frame))
         for key, path in paths.surface_meshes(frame).items():
             m = read_mesh(path)
             if len(m.faces) == 0:
@@ -232,7 +239,17 @@ class FrameRenderer:
                 kw = dict(pbr=True, metallic=look["metallic"], roughness=look["roughness"])
             else:
                 kw = {k: look[k] for k in ("specular", "specular_power", "ambient", "diffuse")}
-            out.append((poly, dict(color=color, opacity=look["opacity"], smooth_shading=True, **kw)))
+            if level_set is not None:     # depth tint: each point as clear as the water behind it
+                alpha = self._water_alpha(frame, m.points, m.normals, level_set)
+                # (VTK's PBR decodes vertex colors as sRGB and takes a property's color as
+                # linear: encoded, the two paths give the same color)
+                srgb = np.asarray(color) ** (1 / 2.2)
+                poly.point_data["rgba"] = np.column_stack(
+                    [np.tile(np.round(255 * srgb), (len(alpha), 1)), np.round(255 * alpha)]).astype(np.uint8)
+                kw.update(scalars="rgba", rgba=True)
+            else:
+                kw.update(color=color, opacity=look["opacity"])
+            out.append((poly, dict(smooth_shading=True, **kw)))
         spray = paths.surface_spray(frame)
         if spray.exists():
             points = read_points(spray)
@@ -244,6 +261,30 @@ class FrameRenderer:
                 out.append((cloud, dict(color=look["spray_color"], render_points_as_spheres=True,
                                         point_size=size, ambient=0.5)))
         return out
+
+    def _water_alpha(self, frame: int, points, normals, level_set) -> np.ndarray:
+        """Opacity per vertex from Beer-Lambert absorption over the water behind it, along the
+        ray from the camera: the look's `opacity` where the water is one absorption length
+        (look `absorption` times the domain's diagonal) deep, half that for the thinnest sheet
+        (so that it still shows); zero on faces turned away (the front face carries the
+        water's whole depth, and a blob no longer reads as a ball drawn twice)."""
+        from surfacing.thickness import ray_thickness
+
+        look = self.look
+        lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
+        depth = look["absorption"] * float(np.linalg.norm(hi - lo))
+        eye = np.asarray(camera_at(self.spec.render, frame).position, np.float64)
+        ray = np.asarray(points, np.float64) - eye
+        ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
+        front = np.einsum("ij,ij->i", np.asarray(normals, np.float64), ray) < 0
+        sdf, index_min, cell = level_set
+        water = ray_thickness(sdf, index_min, cell, points[front], ray[front], max_length=4 * depth)
+        # opacity at one absorption length is look["opacity"]: 1 - exp(-k) = opacity
+        k = -np.log(1 - look["opacity"])
+        least = 0.5 * look["opacity"]
+        alpha = np.zeros(len(points))
+        alpha[front] = least + (1 - least) * (1 - np.exp(-k * water / depth))
+        return alpha
 
     def _pixels_per_metre(self) -> float:
         cam = self.spec.render.camera
