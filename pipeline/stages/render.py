@@ -296,9 +296,10 @@ class FrameRenderer:
         for actor in self.fluid_actors:
             pl.remove_actor(actor, render=False)
         meshes = self._fluid_meshes(frame, paths)
-        self.fluid_actors = [pl.add_mesh(mesh, **kw) for mesh, kw in meshes]
-        if self.shadow is not None:
+        if self.shadow is not None:   # before the meshes are added: cast after add_mesh, the
+            # first frame a renderer drew came out up to 3 levels off the same frame drawn later
             self.shadow.cast([m for m, _kw in meshes])
+        self.fluid_actors = [pl.add_mesh(mesh, **kw) for mesh, kw in meshes]
         cam = camera_at(r, frame)
         pl.camera.position = cam.position
         pl.camera.focal_point = cam.focal_point
@@ -408,6 +409,7 @@ class ContactShadow:
         rgb = self.layer.point_data["rgb"]
         rgb[:] = np.round(255 * self.ground * (1 - self.opacity.reshape(-1, 1)))
         self.layer.GetPointData().GetArray("rgb").Modified()
+        self.layer.Modified()
 
 
 SKY_TEXELS = 64     # a cube face's side: the soft boxes' edges stay sharp in a calm surface
