@@ -68,9 +68,12 @@ class Progress:
         if self._bar is not None:
             self._bar.stop()
             self._bar = None
+        now = time.perf_counter()
         for stage in self._totals:
             # from the stage's start (streamed Dask stages: from the run's, as they overlap it)
-            dt = self._last[stage] - self._start.get(stage, self._t0)
+            # to its last frame, or to now when it finished none (it failed, or never started)
+            last = self._last[stage] if self._done[stage] else now
+            dt = max(0.0, last - self._start.get(stage, self._t0))
             self.line(f"sphshot: {stage}: {self._done[stage]} frame(s) in {dt:.1f} s")
         self._totals = {}
 

@@ -323,6 +323,18 @@ def test_stage_timing_lines_count_from_each_stage_start():
     times = {ln.split(":")[1].strip(): float(ln.rsplit(" in ", 1)[1].split()[0])
              for ln in out.getvalue().splitlines() if " frame(s) in " in ln}
     assert times["sim"] >= 0.3 and 0.1 <= times["surface"] < 0.3, times
+    # a stage that started late and finished no frame (it failed) reads its own time, not a
+    # negative one (it read "render: 0 frame(s) in -5.2 s")
+    out = io.StringIO()
+    p = Progress(stream=out, interactive=False)
+    p.begin({"sim": 1, "render": 1})
+    time.sleep(0.1)
+    p.for_stage("sim").frame_done(1)
+    p.for_stage("render")
+    time.sleep(0.3)
+    p.end()
+    render_line = [ln for ln in out.getvalue().splitlines() if "render: 0 frame(s) in" in ln]
+    assert render_line and 0.3 <= float(render_line[0].rsplit(" in ", 1)[1].split()[0]) < 0.6, out.getvalue()
 
 
 def test_background_writer_keeps_order_and_reports_errors():

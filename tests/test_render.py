@@ -154,19 +154,24 @@ def test_sky_is_the_looks_colors_and_the_same_every_time():
 def test_contact_shadow_lies_under_what_casts_it():
     """A closed 0.2 m cube in a 1 m domain: straight down, its top and bottom each cover the
     texels under it once, so under its middle the opacity is strength * (1 - exp(-1)) (the
-    blur, 3 cm, leaves the middle of a 20 cm square as it is); 15 cm beside it, nothing."""
+    blur, 4.5 cm: 3 % of the diagonal, takes 5 % off the middle of a 20 cm square); 15 cm
+    beside it, nothing. The same under a closed upright cylinder of 12 cm radius (its side
+    projects onto its outline; the blur takes 3 % off its middle)."""
     import pyvista as pv
 
     from pipeline.stages.render import ContactShadow
 
     shadow = ContactShadow(pv, (0, 0, 0), (1, 0.5, 1), strength=0.5)
     cube = pv.Box(bounds=(0.4, 0.6, 0.0, 0.2, 0.4, 0.6)).triangulate()
-    shadow.cast([cube])
+    # a cylinder's caps are polygons (as a capsule collider's drawing is), spray is points
+    post = pv.Cylinder(center=(0.2, 0.1, 0.2), direction=(0, 1, 0), radius=0.12, height=0.2, resolution=48)
+    shadow.cast([cube, post, pv.PolyData(np.full((3, 3), 0.8))])
     alpha = shadow.opacity
     x = shadow.origin[0] + shadow.texel * np.arange(shadow.shape[0])
     z = shadow.origin[1] + shadow.texel * np.arange(shadow.shape[1])
     at = lambda px, pz: alpha[np.abs(x - px).argmin(), np.abs(z - pz).argmin()]   # noqa: E731
     assert at(0.5, 0.5) == pytest.approx(0.5 * (1 - np.exp(-1)), abs=0.02)
+    assert at(0.2, 0.2) == pytest.approx(0.5 * (1 - np.exp(-1)), abs=0.03)
     assert at(0.75, 0.5) < 0.01 and at(0.5, 0.25) < 0.01
     shadow.cast([])
     assert shadow.opacity.max() == 0 and (shadow.layer.point_data["rgb"] == round(0.5 * 255)).all()

@@ -377,10 +377,11 @@ class ContactShadow:
         """1 - exp(-projected area / texel area / 2): a closed surface projects twice."""
         total = np.zeros(self.shape)
         for m in meshes:
-            faces = getattr(m, "regular_faces", None) if m.n_cells else None
-            if faces is None or len(faces) == 0 or faces.shape[1] != 3:
-                continue
-            tri = np.asarray(m.points, np.float64)[faces]
+            if m.n_faces == 0:
+                continue            # points (spray) cast none
+            if not m.is_all_triangles:
+                m = m.triangulate()     # a capsule's or a cylinder's polygon caps
+            tri = np.asarray(m.points, np.float64)[m.regular_faces]
             if np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max() > 4 * self.texel:
                 # each triangle counts at its centre, a texel or two off under the blur (about 5
                 # texels): split large ones (a box collider's), not the fluid's
