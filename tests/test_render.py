@@ -237,6 +237,30 @@ def test_a_frame_is_the_same_drawn_first_or_after_another(tmp_path):
     assert np.array_equal(a, b)
 
 
+def test_spray_is_white_where_it_flies_and_pale_water_at_rest(tmp_path):
+    """The water look's spray points: the spray color (white) at a quarter of the shot's
+    expected largest speed and above, half way between it and clear water's tint at rest (a
+    droplet left on a stone is a bead, not foam)."""
+    from pipeline.formats import write_points
+    from pipeline.stages import render
+
+    spec = scene(tmp_path, look="water", surface={"spray": 25})
+    paths = synthetic_meshes(spec, [2])
+    fast = 0.25 * spec.expected_max_speed()
+    velocity = np.array([[0, 0, 0], [fast, 0, 0], [0, -2 * fast, 0]], np.float32)
+    write_points(paths.surface_spray(2), np.full((3, 3), 0.3, np.float32), velocity, 0.004)
+    fr = render.FrameRenderer(spec)
+    try:
+        clouds = [m for m, _kw in fr._fluid_meshes(2, paths) if m.n_faces == 0]
+    finally:
+        fr.close()
+    assert len(clouds) == 1
+    rgb = clouds[0].point_data["rgb"] / 255.0
+    white, tint = np.asarray(fr.look["spray_color"]), np.asarray(fr.look["tint"])
+    np.testing.assert_allclose(rgb[0], 0.5 * (white + tint), atol=1 / 255)
+    np.testing.assert_allclose(rgb[1:], [white, white], atol=1 / 255)
+
+
 def test_water_look_reflects_the_sky(tmp_path, monkeypatch):
     """The water look lights the fluid with the sky as well as the lamps: without the
     environment, the sphere's pixels change (its reflection and Fresnel rim go: measured 1,298

@@ -258,8 +258,16 @@ class FrameRenderer:
                 size = max(2.0, 0.8 * self._pixels_per_metre() * 2 * spec.sim.particle_radius)
                 cloud = pv.PolyData(pts)
                 cloud.point_data["motion"] = points["velocity"]
-                out.append((cloud, dict(color=look["spray_color"], render_points_as_spheres=True,
-                                        point_size=size, ambient=0.5)))
+                kw = dict(color=look["spray_color"])
+                if "tint" in look:      # white where it flies (aerated spray), a pale water color
+                    # where it has come to rest (a droplet left on a stone is a bead, not foam)
+                    fast = np.clip(np.linalg.norm(points["velocity"], axis=1) / (0.25 * spec.expected_max_speed()),
+                                   0.0, 1.0)[:, None]
+                    white = np.asarray(look["spray_color"])
+                    rgb = (1 - fast) * 0.5 * (np.asarray(look["tint"]) + white) + fast * white
+                    cloud.point_data["rgb"] = np.round(255 * rgb).astype(np.uint8)
+                    kw = dict(scalars="rgb", rgb=True)
+                out.append((cloud, dict(render_points_as_spheres=True, point_size=size, ambient=0.5, **kw)))
         return out
 
     def _water_alpha(self, frame: int, points, normals, level_set) -> np.ndarray:
