@@ -117,16 +117,17 @@ class FrameRenderer:
             lo, hi = spec.domain.min, spec.domain.max
             box = pv.Box(bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])).outline()
             pl.add_mesh(box, color=(0.78, 0.8, 0.84), line_width=1.5, lighting=False)
-        if r.colliders:
-            for mesh, col in collider_meshes(spec):
-                actor = pl.add_mesh(mesh, color=col.color, pbr=True, metallic=0.0, roughness=0.6,
-                                    smooth_shading=col.type != "box")   # a box keeps its hard edges
-                # drawn a little nearer than it is: the water's mesh hugs a submerged collider,
-                # and where the two coincide their depths fought, speckling the collider
-                actor.mapper.SetResolveCoincidentTopologyToPolygonOffset()
-                actor.mapper.SetRelativeCoincidentTopologyPolygonOffsetParameters(-4.0, -4.0)
-        if self.shadow is not None and r.colliders:
-            self.shadow.cast_still([m for m, _col in collider_meshes(spec)])
+        colliders = collider_meshes(spec) if r.colliders else []
+        for mesh, col in colliders:
+            actor = pl.add_mesh(mesh, color=col.color, pbr=True, metallic=0.0, roughness=0.6,
+                                smooth_shading=col.type != "box")   # a box keeps its hard edges
+            # drawn a little nearer than it is: the water's mesh hugs a submerged collider, and
+            # where the two coincide their depths fought, speckling the collider. (The mode is
+            # VTK's one global setting, off by default; the offset is this mapper's own.)
+            actor.mapper.SetResolveCoincidentTopologyToPolygonOffset()
+            actor.mapper.SetRelativeCoincidentTopologyPolygonOffsetParameters(-4.0, -4.0)
+        if self.shadow is not None:
+            self.shadow.cast_still([m for m, _col in colliders])
         if r.ssaa:
             pl.enable_anti_aliasing("ssaa")
         self.pl = pl
