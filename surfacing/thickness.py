@@ -33,11 +33,12 @@ def sample(sdf: np.ndarray, index_min, cell: float, p: np.ndarray, outside: floa
 
 
 def ray_thickness(sdf: np.ndarray, index_min, cell: float, points: np.ndarray, directions: np.ndarray,
-                  max_length: float) -> np.ndarray:
+                  max_length: float, min_step: float = 0.0) -> np.ndarray:
     """Length of water along each ray (unit `directions`) from `points` on the surface, up to
     `max_length`: from where the ray enters (found in quarter-cell steps, within two cells of
     its start: a ray at a grazing angle is still at the surface after the first) to where it
-    leaves (within half a cell). Zero for a ray that does not enter."""
+    leaves (within half a cell, or `min_step` if that is longer: the caller's tolerance, which
+    bounds the steps through deep water)."""
     points = np.asarray(points, np.float64)
     directions = np.asarray(directions, np.float64)
     outside = float(np.abs(sdf).max()) if sdf.size else 1.0
@@ -50,7 +51,7 @@ def ray_thickness(sdf: np.ndarray, index_min, cell: float, points: np.ndarray, d
         entered = ~np.isnan(entry[live])
         entry[live[inside & ~entered]] = length[live[inside & ~entered]]
         going = np.where(entered, inside, inside | (length[live] < 2 * cell)) & (length[live] < max_length)
-        step = np.where(inside, np.maximum(-phi, 0.5 * cell), 0.25 * cell)
+        step = np.where(inside, np.maximum(-phi, max(0.5 * cell, min_step)), 0.25 * cell)
         live, step = live[going], step[going]
         length[live] += step
     return np.where(np.isnan(entry), 0.0, np.minimum(length, max_length) - np.nan_to_num(entry))

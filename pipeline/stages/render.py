@@ -287,7 +287,11 @@ class FrameRenderer:
         ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
         front = np.einsum("ij,ij->i", np.asarray(normals, np.float64), ray) < 0
         sdf, index_min, cell = level_set
-        water = ray_thickness(sdf, index_min, cell, points[front], ray[front], max_length=4 * depth)
+        # within 1/32 of an absorption length (under 3 % of the opacity), up to 3 lengths (91 %
+        # of the way to opaque): the march through 1.3 M vertices of the showcase took 8.5 s
+        # in steps of half a cell up to 4 lengths
+        water = ray_thickness(sdf, index_min, cell, points[front], ray[front], max_length=3 * depth,
+                              min_step=depth / 32)
         # opacity at one absorption length is look["opacity"]: 1 - exp(-k) = opacity
         k = -np.log(1 - look["opacity"])
         least = 0.5 * look["opacity"]
