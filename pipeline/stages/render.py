@@ -59,8 +59,8 @@ def look_of(render) -> dict:
             look[key] = getattr(render, key)
     mat = render.material
     if "material" in render.model_fields_set or look["shading"] == "pbr":
-        look.update(shading="ibl" if look["shading"] == "ibl" else "pbr", color=mat.color, opacity=mat.opacity, roughness=mat.roughness,
-                    metallic=mat.metallic)
+        look.update(shading="ibl" if look["shading"] == "ibl" else "pbr", color=mat.color, opacity=mat.opacity,
+                    roughness=mat.roughness, metallic=mat.metallic)
     return look
 
 
