@@ -130,9 +130,11 @@ def two_layers(heavy_below: bool, viscosity: float = 1.0) -> dict:
 def test_oil_on_water_stays_layered_and_still():
     """Oil (800 kg/m^3) resting on water, settled 0.5 s and left alone 1 s more: under 1 % of
     either fluid lies beyond two radii of the interface (the issue's bound; measured 0 %), and
-    the rms speed is under 1 cm/s. (The issue asks for 5 mm/s; DFSPH's velocities carry the
-    solve's tolerance, 0.1 % of h per step, as noise: measured 9.7 mm/s at 1 s, 5.5 mm/s with
-    a 0.01 % bound.)"""
+    the rms speed is under 1 cm/s. (The issue asks for 5 mm/s, not met: measured 6.0-7.8 mm/s
+    at 1.5 s in three runs. The noise is made every step, not left from the start: with Pa s
+    viscosities, damped still and released it is back at 8-13 mm/s within 0.25 s; ten times
+    tighter bounds on both solves leave it at 5-8 mm/s. bench/resting.py, bench/RESULTS.md,
+    fifteenth session.)"""
     spec, _params, s = dfsph(two_layers(True))
     s.advance_to(1.5)
     d = s.snapshot()
