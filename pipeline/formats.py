@@ -144,12 +144,11 @@ def read_level_set(path: Path, name: str = "surface") -> tuple[np.ndarray, tuple
         grid = vdb.read(str(path), name)
     except (KeyError, ValueError, RuntimeError):
         return None
-    lo, hi = grid.evalActiveVoxelBoundingBox()
     if grid.activeVoxelCount() == 0:
         return None
+    lo, hi = grid.evalActiveVoxelBoundingBox()
     lo = tuple(int(v) - 1 for v in lo)
     shape = tuple(int(b) - int(a) + 2 for a, b in zip(lo, hi))
     dense = np.full(shape, grid.background, np.float32)
     grid.copyToArray(dense, ijk=lo)
     return dense, lo, float(grid.transform.voxelSize()[0])
-
