@@ -14,7 +14,7 @@ splashsurf computes its own densities (included in its time). splashsurf runs in
 child, so both peak memories are per process. Timings are medians of --repeat runs after a
 warm-up; the two sides alternate for --rounds rounds and the ratio is the median round's.
 sphshot runs three times: "mesh" makes what splashsurf makes (the mesh, no velocities; the
-comparison); "aniso" the same with the anisotropic kernels (the surface stage's default method;
+comparison); "aniso" the same with the anisotropic kernels and their centres smoothed (the surface stage's defaults;
 splashsurf has none: target at most 2x splashsurf's isotropic time at 500k); "full" makes what
 the surface stage makes with isotropic kernels (velocity field and vertex velocities too), then
 times the VDB grids separately.
@@ -73,14 +73,18 @@ def child_sphshot(path: str, repeat: int, vdb_dir: str, mode: str) -> None:
     aniso = mode == "aniso"              # the anisotropic kernels (the surface stage's default), mesh alone
     iso = Surface.ISO["anisotropic"] if aniso else ISO
     marching_cubes(color_field(P[:2000], vel[:2000], vol[:2000], CUBE * R, SUPPORT * R, ISO), ISO)
-    marching_cubes(color_field(P[:2000], None, vol[:2000], CUBE * R, SUPPORT * R, iso, anisotropic=aniso), iso)
+    # the surface stage's default centre smoothing with the anisotropic kernels (two passes, Taubin's)
+    smooth = {"center_smoothing": Surface().center_smoothing,
+              "center_inflation": Surface().center_inflation} if aniso else {}
+    marching_cubes(color_field(P[:2000], None, vol[:2000], CUBE * R, SUPPORT * R, iso, anisotropic=aniso, **smooth),
+                   iso)
 
     def timed(v):
         times, field, mesh = [], None, None
         for _ in range(repeat):
             field = mesh = None          # peak memory is that of one reconstruction, not two
             t0 = time.perf_counter()
-            field = color_field(P, v, vol, CUBE * R, SUPPORT * R, iso, anisotropic=aniso)
+            field = color_field(P, v, vol, CUBE * R, SUPPORT * R, iso, anisotropic=aniso, **smooth)
             t1 = time.perf_counter()
             mesh = marching_cubes(field, iso)
             t2 = time.perf_counter()

@@ -240,9 +240,12 @@ class Surface(Strict):
     # written as points (<shot>.<frame>.spray.ply), left out of the mesh; 0: no spray file. The
     # default is the anisotropic kernels' N_EPS: fewer than that have no shape to stretch
     spray: Annotated[int, Field(ge=0, le=1000)] = 25
-    # anisotropic: Laplacian smoothing of the kernel centres (Yu & Turk's lambda, 0.9 in the paper;
-    # it shrinks every face by up to 1.7 particle radii, so 0 unless asked for)
-    center_smoothing: Unit = 0.0
+    # anisotropic: Laplacian smoothing of the kernel centres (Yu & Turk's lambda, 0.9 in the paper),
+    # then Taubin's second pass pushing them back out by center_inflation of their own Laplacian
+    # (his -mu): particle-scale bumps damped, faces kept where they were (surfacing/anisotropy.py).
+    # center_inflation = 0 is Yu & Turk's smoothing alone, which pulls every face in
+    center_smoothing: Unit = 0.5
+    center_inflation: Unit = 0.53
     format: Literal["ply", "obj", "vtu"] = "ply"
     per_fluid: bool = False               # one mesh per fluid instead of one for all
     smoothing_iterations: Annotated[int, Field(ge=0, le=200)] = 0   # Taubin smoothing

@@ -30,6 +30,7 @@ class SurfaceParams:
     method: str = "isotropic"           # or "anisotropic" (Yu & Turk 2013: surfacing/anisotropy.py)
     spray_below: int = 0                # fewer neighbours than this within 2 supports: spray
     center_smoothing: float = 0.0       # anisotropic: Yu & Turk's lambda
+    center_inflation: float = 0.0       # anisotropic, with center_smoothing: Taubin's second pass (-mu)
     inside: tuple | None = None         # (lo, hi): the mesh is kept inside this box (the domain)
     outside_solids: Callable | None = None   # points -> points moved out of the solids (colliders)
 
@@ -39,7 +40,7 @@ def reconstruct(positions, velocities, volumes, params: SurfaceParams) -> tuple[
     mesh after smoothing and decimation."""
     field = color_field(positions, velocities, volumes, params.cell, params.kernel_radius, params.iso,
                         params.kernel, anisotropic=params.method == "anisotropic", spray_below=params.spray_below,
-                        center_smoothing=params.center_smoothing)
+                        center_smoothing=params.center_smoothing, center_inflation=params.center_inflation)
     return field, surface_mesh(field, params.iso, params.smoothing_iterations, params.decimate, params.inside,
                                params.outside_solids)
 
@@ -59,14 +60,15 @@ def particle_volumes(data: dict, attrs: dict) -> np.ndarray:
 
 def color_field(positions, velocities, volumes, cell: float, support: float, iso: float = 0.5,
                  kernel: str = "cubic", method: str = "auto", anisotropic: bool = False,
-                 spray_below: int = 0, center_smoothing: float = 0.0) -> Field:
+                 spray_below: int = 0, center_smoothing: float = 0.0, center_inflation: float = 0.0) -> Field:
     """Splat the particles onto the blocks their supports reach (`kernel`: cubic, poly6 or
     wendland; `anisotropic`: stretched after Yu & Turk 2013). With `velocities`, the velocity
     field too, on the blocks the `iso` surface crosses and their upper neighbours (what the
     mesh's vertices and a motion-blur band need), from only the particles that reach them.
     `method`: the scatter (surfacing/splat.py: "auto" picks by the backend). Particles with
     fewer than `spray_below` neighbours are left out; field.spray is their mask."""
-    sp = Splat(positions, volumes, cell, support, kernel, method, anisotropic, spray_below, center_smoothing)
+    sp = Splat(positions, volumes, cell, support, kernel, method, anisotropic, spray_below, center_smoothing,
+               center_inflation)
     field = Field(sp.color(), sp.blocks, sp.lookup, sp.base_block, cell)
     field.spray = sp.spray
     if velocities is not None and field.n_blocks:

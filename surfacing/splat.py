@@ -362,13 +362,15 @@ class Splat:
 
     def __init__(self, positions: np.ndarray, volumes: np.ndarray, cell: float, support: float,
                  kernel: str = "cubic", method: str = "auto", anisotropic: bool = False, spray_below: int = 0,
-                 center_smoothing: float = 0.0):
+                 center_smoothing: float = 0.0, center_inflation: float = 0.0):
         """method: "phased", "atomic" or "auto" (atomic on CUDA, else phased). anisotropic: Yu
         & Turk's kernels (surfacing/anisotropy.py), centres smoothed by `center_smoothing`
-        (their lambda). spray_below: particles with fewer neighbours than this within
+        (their lambda), then pushed back out by `center_inflation` (Taubin's mu, as a positive
+        number; anisotropy.k_inflate) where both are set. spray_below: particles with fewer neighbours than this within
         anisotropy.RADIUS supports (itself counted) are spray, left out of the field
         (self.spray: their mask, in input order)."""
         self.center_smoothing = float(center_smoothing)
+        self.center_inflation = float(center_inflation)
         self.cell, self.support = float(cell), float(support)
         self.atomic = D.on_cuda() if method == "auto" else method == "atomic"
         self.anisotropic = bool(anisotropic)
@@ -423,6 +425,11 @@ class Splat:
         A.k_anisotropy(pos, start, count, vec3(*map(float, self.origin)), edge, ivec3(*dims),
                        A.RADIUS * self.support, self.center_smoothing, center, table, neighbours,
                        self.anisotropic and self.center_smoothing > 0)
+        if self.anisotropic and self.center_smoothing > 0 and self.center_inflation > 0:
+            inflated = D.empty(ti.f32, self.n, 3)
+            A.k_inflate(pos, center, start, count, vec3(*map(float, self.origin)), edge, ivec3(*dims),
+                        self.support, self.center_inflation, inflated)
+            center = inflated
         A.k_weigh(vol, table, neighbours, spray_below, self.anisotropic)
         if spray_below > 0:
             few = D.host(neighbours) < spray_below

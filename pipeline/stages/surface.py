@@ -37,6 +37,7 @@ def surface_params(spec) -> SurfaceParams:
     return SurfaceParams(cell=spec.surface_cell_m, kernel_radius=spec.surface_kernel_radius_m, iso=s.iso_value,
                          kernel=s.kernel, smoothing_iterations=s.smoothing_iterations, decimate=s.decimate,
                          method=s.method, spray_below=s.spray, center_smoothing=s.center_smoothing,
+                         center_inflation=s.center_inflation,
                          inside=(spec.domain.min, spec.domain.max), outside_solids=solids)
 
 
