@@ -212,7 +212,7 @@ def test_dask_streams_and_reports_a_failed_frame_by_number(job_copy):
     seconds, long enough to see the surface stream behind it; DFSPH's 10 small frames can end
     before a Dask worker has started.)"""
     job = job_copy()
-    args = small("shot.frame_end=10", 'sim.solver="wcsph"')
+    args = small("shot.frame_end=10", 'sim.solver="wcsph"', 'sim.surface_tension_model="mueller"')
     spec = spec_of(job, args)
     paths = cache.ShotPaths.for_spec(spec)
     sphshot("run", job, *args, "--executor", "dask", "--workers", "2", check=True)

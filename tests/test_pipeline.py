@@ -121,7 +121,7 @@ def test_unstable_sim_stops_naming_frame_and_parameter_and_keeps_earlier_frames(
     """WCSPH with a speed of sound of 1 m/s lets the collapsing column compress past the
     density bound."""
     job = job_copy()
-    args = small("sim.speed_of_sound=1.0", 'sim.solver="wcsph"')
+    args = small("sim.speed_of_sound=1.0", 'sim.solver="wcsph"', 'sim.surface_tension_model="mueller"')
     proc = sphshot("run", job, *args, "--stage", "sim")
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("sphshot: error:")]
     assert proc.returncode == 1, proc.stderr

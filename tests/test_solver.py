@@ -527,7 +527,7 @@ def test_stop_and_resume_is_bit_identical_on_one_thread(job_copy, solver):
 
     job = job_copy()
     common = ["sim.particle_radius=0.02", "sim.threads=1", "shot.frame_end=8", "shot.checkpoint_every=3",
-              f'sim.solver="{solver}"']
+              f'sim.solver="{solver}"'] + (['sim.surface_tension_model="mueller"'] if solver == "wcsph" else [])
     whole = load_spec(job, common + ['shot.output="a"'])
     split = load_spec(job, common + ['shot.output="b"'])
     quiet = Progress(interactive=False, stream=open("/dev/null", "w"))
