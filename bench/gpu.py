@@ -222,8 +222,8 @@ def stage_section(limit: float, solver: str = "dfsph", extra: tuple = ()) -> Non
            "--set", f"sim.backend=\"{BACKEND}\"", "--set", f"sim.particle_radius={0.0025 if SCALE == 1 else 0.01}",
            "--set", f"shot.frame_end={frames}", "--set", f"shot.output=\"{out_dir}\"",
            "--set", f"sim.solver=\"{solver}\"", *[a for e in extra for a in ("--set", e)]]
-    if solver == "wcsph":           # the example's Akinci tension is DFSPH's; WCSPH takes the color field's
-        cmd += ["--set", 'sim.surface_tension_model="mueller"']
+    if solver == "wcsph":           # the example's Akinci tension is DFSPH's: WCSPH's runs as before, without
+        cmd += ["--set", 'sim.surface_tension_model="mueller"', "--set", "fluids.0.surface_tension=0"]
     t0 = time.perf_counter()
     with open(log, "w") as f:
         child = subprocess.Popen(cmd, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT)
