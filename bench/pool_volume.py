@@ -10,6 +10,7 @@ worth of particles at rest density, where the lattice has one layer at 0.85 of r
 
   .venv/bin/python bench/pool_volume.py
   .venv/bin/python bench/pool_volume.py --seconds 2 --profile
+  .venv/bin/python bench/pool_volume.py --set fluids.0.surface_tension=0   # any job key, as sphshot's --set
 
 Not a test: figures and what they showed are in bench/RESULTS.md (sixteenth session).
 """
@@ -24,16 +25,20 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def pool_spec(depth: float):
-    """The example's job with its block spread over the whole floor, `depth` deep, no collider."""
+def pool_spec(depth: float, overrides: list[str]):
+    """The example's job with its block spread over the whole floor, `depth` deep, no collider,
+    then the `overrides` (KEY=VALUE, as sphshot's --set)."""
     import tomllib
 
-    from pipeline.spec import ShotSpec, _tuples
+    from pipeline.spec import ShotSpec, _tuples, apply_override, parse_override
 
     job = tomllib.loads((ROOT / "jobs" / "dambreak.toml").read_text())
     job["shot"].update(name="pool", output=str(ROOT / "shots"))
     job["fluids"][0]["blocks"] = [{"min": [0.0, 0.0, 0.0], "max": [1.0, depth, 0.4]}]
     job["colliders"] = []
+    for text in overrides:
+        path, value = parse_override(text)
+        apply_override(job, path, value, text)
     return ShotSpec.model_validate(_tuples(job))
 
 
@@ -43,6 +48,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=2.0)
     ap.add_argument("--times", default="0.02,0.05,0.1,0.25,0.5,1,1.5,2")
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     a = ap.parse_args()
 
     from solver.backend import init_taichi
@@ -52,7 +58,7 @@ def main() -> None:
     from pipeline.stages.sim import frame_attrs, initial_state, make_solver, solver_params
     from pipeline.stages.surface import surface_frame
 
-    spec = pool_spec(a.depth)
+    spec = pool_spec(a.depth, a.set)
     params = solver_params(spec)
     s = make_solver(spec, params, initial_state(spec, params))
     r, lo, hi = params.particle_radius, np.array(params.domain_min), np.array(params.domain_max)
