@@ -44,6 +44,24 @@ COLUMNS = 7
 R7 = ti.types.ndarray(dtype=ti.types.vector(COLUMNS, ti.f32), ndim=1)
 
 
+@ti.func
+def cells_around(x, radius: ti.f32, origin, inv_edge: ti.f32, dims):
+    """The lowest and highest cells (clamped to the grid) of the cube of half-width `radius`
+    about x, in cells of edge 1 / inv_edge from `origin`."""
+    lo = ti.math.clamp(ti.cast(ti.floor((x - radius - origin) * inv_edge), ti.i32), 0, dims - 1)
+    hi = ti.math.clamp(ti.cast(ti.floor((x + radius - origin) * inv_edge), ti.i32), 0, dims - 1)
+    return lo, hi
+
+
+@ti.func
+def row_run(cx, cy, lo, hi, dims, start: ti.template(), count: ti.template()):
+    """The particles of cells (cx, cy, lo.z .. hi.z): one run [begin, end) in the sorted order
+    (cells numbered row by row, a row along z)."""
+    k0 = (cx * dims.y + cy) * dims.z + lo.z
+    k1 = (cx * dims.y + cy) * dims.z + hi.z
+    return start[k0], start[k1] + count[k1]
+
+
 @ti.kernel
 def k_anisotropy(pos: V3, start: I1, count: I1, origin: vec3, edge: ti.f32, dims: ivec3,
                  radius: ti.f32, lam: ti.f32, center: V3, table: R7, neighbours: I1, smooth: ti.template()):
@@ -55,8 +73,7 @@ def k_anisotropy(pos: V3, start: I1, count: I1, origin: vec3, edge: ti.f32, dims
     inv_r = 1.0 / radius
     for p in pos:
         x = pos[p]
-        lo = ti.math.clamp(ti.cast(ti.floor((x - radius - origin) * inv_edge), ti.i32), 0, dims - 1)
-        hi = ti.math.clamp(ti.cast(ti.floor((x + radius - origin) * inv_edge), ti.i32), 0, dims - 1)
+        lo, hi = cells_around(x, radius, origin, inv_edge, dims)
         wsum = 0.0
         m1 = vec3(0.0)                           # sum w d, d = (x_j - x_p) / R: O(1) for the SVD
         c0 = vec3(0.0)                           # sum w d d^T: the diagonal
@@ -65,9 +82,8 @@ def k_anisotropy(pos: V3, start: I1, count: I1, origin: vec3, edge: ti.f32, dims
         m1_h = vec3(0.0)
         n = 0
         for cx, cy in ti.ndrange((lo.x, hi.x + 1), (lo.y, hi.y + 1)):
-            k0 = (cx * dims.y + cy) * dims.z + lo.z
-            k1 = (cx * dims.y + cy) * dims.z + hi.z
-            for q in range(start[k0], start[k1] + count[k1]):
+            begin, end = row_run(cx, cy, lo, hi, dims, start, count)
+            for q in range(begin, end):
                 d = (pos[q] - x) * inv_r
                 s = d.norm_sqr()
                 t = ti.sqrt(ti.min(s, 1.0))
@@ -114,14 +130,12 @@ def k_inflate(pos: V3, center: V3, start: I1, count: I1, origin: vec3, edge: ti.
     for p in pos:
         x = pos[p]
         cp = center[p]
-        lo = ti.math.clamp(ti.cast(ti.floor((x - h - origin) * inv_edge), ti.i32), 0, dims - 1)
-        hi = ti.math.clamp(ti.cast(ti.floor((x + h - origin) * inv_edge), ti.i32), 0, dims - 1)
+        lo, hi = cells_around(x, h, origin, inv_edge, dims)
         wsum = 0.0
         acc = vec3(0.0)
         for cx, cy in ti.ndrange((lo.x, hi.x + 1), (lo.y, hi.y + 1)):
-            k0 = (cx * dims.y + cy) * dims.z + lo.z
-            k1 = (cx * dims.y + cy) * dims.z + hi.z
-            for q in range(start[k0], start[k1] + count[k1]):
+            begin, end = row_run(cx, cy, lo, hi, dims, start, count)
+            for q in range(begin, end):
                 t = ti.sqrt(ti.min((pos[q] - x).norm_sqr() * inv_h * inv_h, 1.0))
                 w = 1.0 - t * t * t
                 wsum += w

@@ -366,9 +366,9 @@ class Splat:
         """method: "phased", "atomic" or "auto" (atomic on CUDA, else phased). anisotropic: Yu
         & Turk's kernels (surfacing/anisotropy.py), centres smoothed by `center_smoothing`
         (their lambda), then pushed back out by `center_inflation` (Taubin's mu, as a positive
-        number; anisotropy.k_inflate) where both are set. spray_below: particles with fewer neighbours than this within
-        anisotropy.RADIUS supports (itself counted) are spray, left out of the field
-        (self.spray: their mask, in input order)."""
+        number; anisotropy.k_inflate) where both are set. spray_below: particles with fewer
+        neighbours than this within anisotropy.RADIUS supports (itself counted) are spray, left
+        out of the field (self.spray: their mask, in input order)."""
         self.center_smoothing = float(center_smoothing)
         self.center_inflation = float(center_inflation)
         self.cell, self.support = float(cell), float(support)

@@ -97,7 +97,10 @@ def _surface(backend: str, anisotropic: bool = False):
     vol = np.full(len(pos), 0.01 ** 3, np.float32)
     iso = 0.2 if anisotropic else 0.5
     # anisotropic: with the surface stage's default centre smoothing (both passes: anisotropy.k_inflate)
-    smooth = {"center_smoothing": 0.5, "center_inflation": 0.53} if anisotropic else {}
+    from pipeline.spec import Surface
+    stage = Surface()
+    smooth = ({"center_smoothing": stage.center_smoothing, "center_inflation": stage.center_inflation}
+              if anisotropic else {})
     field = color_field(pos, vel, vol, 0.00375, 0.02, iso, anisotropic=anisotropic, spray_below=25 if anisotropic else 0,
                         **smooth)
     mesh = marching_cubes(field, iso)
@@ -129,9 +132,9 @@ def test_cuda_surfacer_matches_cpu():
 
 def test_cuda_anisotropic_surfacer_matches_cpu():
     """The anisotropic kernels (surfacing/anisotropy.py: covariance and SVD per particle, the
-    centres smoothed in two passes, then the stretched splat) on CUDA against the CPU: the kernel shapes come from float32 SVDs
-    that may round differently, so the color within 2e-4 (not 2e-5), the same blocks, vertex
-    counts within 0.5 %."""
+    centres smoothed in two passes, then the stretched splat) on CUDA against the CPU: the
+    kernel shapes come from float32 SVDs that may round differently, so the color within 2e-4
+    (not 2e-5), the same blocks, vertex counts within 0.5 %."""
     gpu_color, _gv, gpu_ids, gpu_mesh = _surface("cuda", anisotropic=True)
     cpu_color, _cv, cpu_ids, cpu_mesh = _surface("cpu", anisotropic=True)
     assert gpu_color.shape == cpu_color.shape

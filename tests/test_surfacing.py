@@ -668,7 +668,10 @@ def test_device_arrays_as_on_a_gpu_give_the_same_field(monkeypatch, anisotropic)
 
     pos, _vel, vol = _clump_and_stray()
     iso = 0.2 if anisotropic else 0.5
-    smooth = {"center_smoothing": 0.5, "center_inflation": 0.53} if anisotropic else {}   # both centre passes
+    from pipeline.spec import Surface
+    stage = Surface()           # the surface stage's centre smoothing, both passes
+    smooth = ({"center_smoothing": stage.center_smoothing, "center_inflation": stage.center_inflation}
+              if anisotropic else {})
     want = color_field(pos, None, vol, CELL, SUPPORT, iso, anisotropic=anisotropic, spray_below=25, **smooth)
     monkeypatch.setattr(D, "on_cpu", lambda: False)
     for method in ("phased", "atomic"):
