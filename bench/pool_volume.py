@@ -28,18 +28,10 @@ sys.path.insert(0, str(ROOT))
 def pool_spec(depth: float, overrides: list[str]):
     """The example's job with its block spread over the whole floor, `depth` deep, no collider,
     then the `overrides` (KEY=VALUE, as sphshot's --set)."""
-    import tomllib
+    from pipeline.spec import load_spec
 
-    from pipeline.spec import ShotSpec, _tuples, apply_override, parse_override
-
-    job = tomllib.loads((ROOT / "jobs" / "dambreak.toml").read_text())
-    job["shot"].update(name="pool", output=str(ROOT / "shots"))
-    job["fluids"][0]["blocks"] = [{"min": [0.0, 0.0, 0.0], "max": [1.0, depth, 0.4]}]
-    job["colliders"] = []
-    for text in overrides:
-        path, value = parse_override(text)
-        apply_override(job, path, value, text)
-    return ShotSpec.model_validate(_tuples(job))
+    return load_spec(ROOT / "jobs" / "dambreak.toml", ['shot.name="pool"', f"fluids.0.blocks.0.max=[1.0, {depth}, 0.4]",
+                                                       "colliders=[]", *overrides])
 
 
 def main() -> None:
