@@ -348,8 +348,8 @@ class DFSPHSolver(SPHSolver):
         self.reset_counters()
 
     # ----------------------------------------------------------------------------- phases
-    def build_lists(self) -> None:
-        super().build_lists()     # sorts the particles: the warm-start arrays follow them
+    def build_lists(self, from_position: bool = False) -> None:
+        super().build_lists(from_position)     # sorts the particles: the warm-start arrays follow them
         for name in self.EXTRA:
             a, b = getattr(self, name), getattr(self, name + "_b")
             k_gather_f1(self.order, a, b)

@@ -126,6 +126,13 @@ def k_gather(order: I1, position: V3, ref: V3, velocity: V3, acceleration: V3, f
 @ti.kernel
 def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, reach: ti.f32,
                  start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3, longest: D1, at: ti.i32):
+    list_pass(ref, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest, at)
+
+
+@ti.func
+def list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.template(), cap: ti.i32,
+              lay: ti.template(), reach: ti.f32, start: ti.template(), count: ti.template(), origin: ti.template(),
+              inv_cell: ti.f32, dims: ti.template(), longest: ti.template(), at: ti.i32):
     """Verlet lists: every j != i within `reach` (= h + skin) of i, at the reference positions,
     in grid order, entry m at verlet[i * lay.x + m * lay.y] (see SPHSolver.lay). A particle with
     more than `cap` raises longest[at] to its count (longest[at] starts at 0 here), and the
@@ -153,6 +160,70 @@ def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2,
         verlet_count[i] = ti.min(m, cap)
         if m > cap:
             ti.atomic_max(longest[at], ti.cast(m, ti.f64))
+
+
+# --------------------------------------------------------------- the whole rebuild, one launch
+@ti.kernel
+def k_rebuild(position: V3, ref: V3, velocity: V3, acceleration: V3, fluid: I1, id: I1,
+              position_o: V3, ref_o: V3, velocity_o: V3, acceleration_o: V3, fluid_o: I1, id_o: I1,
+              cell: I1, count: I1, fill: I1, start: I1, order: I1, sums: I1, sums2: I1,
+              verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, reach: ti.f32,
+              origin: vec3, inv_cell: ti.f32, dims: ivec3, longest: D1, at: ti.i32,
+              from_position: ti.template()):
+    """The sort and the lists of SPHSolver.build_lists in one launch (its loops run in order on
+    the device, as the ten launches they replace did; see wcsph.k_step for why): the counting
+    sort into the *_o arrays, then k_neighbours' lists at the sorted reference positions. With
+    `from_position` the reference positions are the current ones (ref = position, then sort).
+    The cell scan has two levels of SCAN_BLOCK-cell runs and a serial scan of the top level's
+    totals (exact: integers)."""
+    n = count.shape[0]
+    nb, nb2 = sums.shape[0], sums2.shape[0]
+    for c in count:
+        count[c] = 0
+        fill[c] = 0
+    for i in position:
+        c = flat(cell_of(position[i] if ti.static(from_position) else ref[i], origin, inv_cell, dims), dims)
+        cell[i] = c
+        ti.atomic_add(count[c], 1)
+    for b in range(nb):                      # runs of cells
+        s = 0
+        for k in range(SCAN_BLOCK):
+            c = b * SCAN_BLOCK + k
+            if c < n:
+                start[c] = s
+                s += count[c]
+        sums[b] = s
+    for b in range(nb2):                     # runs of the runs' totals
+        s = 0
+        for k in range(SCAN_BLOCK):
+            c = b * SCAN_BLOCK + k
+            if c < nb:
+                v = sums[c]
+                sums[c] = s
+                s += v
+        sums2[b] = s
+    ti.loop_config(serialize=True)
+    s = 0
+    for b in range(nb2):
+        v = sums2[b]
+        sums2[b] = s
+        s += v
+    for b in range(nb):
+        sums[b] += sums2[b // SCAN_BLOCK]
+    for c in range(n):
+        start[c] += sums[c // SCAN_BLOCK]
+    for i in cell:
+        c = cell[i]
+        order[start[c] + ti.atomic_add(fill[c], 1)] = i
+    for s_ in order:
+        i = order[s_]
+        position_o[s_] = position[i]
+        ref_o[s_] = position[i] if ti.static(from_position) else ref[i]
+        velocity_o[s_] = velocity[i]
+        acceleration_o[s_] = acceleration[i]
+        fluid_o[s_] = fluid[i]
+        id_o[s_] = id[i]
+    list_pass(ref_o, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest, at)
 
 
 @ti.kernel

@@ -25,11 +25,11 @@ from .backend import current_arch
 from . import clock
 from .boundaries import collider_arrays, k_collide
 from .errors import TooLarge, Unstable
-from .neighbours import (CELL_DIV, SKIN, k_clear2, k_count, k_gather, k_moved_beyond, k_neighbours, k_scatter,
-                         exclusive_scan)
+from .neighbours import (CELL_DIV, SCAN_BLOCK, SKIN, exclusive_scan, k_clear2, k_count, k_gather, k_moved_beyond,
+                         k_neighbours, k_rebuild, k_scatter)
 from .params import F_ETA, F_MU, F_RHO0, F_SIGMA, SolverParams
 from .types import ivec2, ivec3, pack_constants, vec3
-from .wcsph import k_advance, k_density, k_forces, k_synced_velocity
+from .wcsph import k_advance, k_density, k_forces, k_step, k_synced_velocity
 
 # A step shorter than this fraction of the acoustic CFL step means the state has blown up. The
 # three example shots at their own resolution, all frames, never went below 0.75 of it.
@@ -71,6 +71,8 @@ class SPHSolver:
     KEEP = 0.5      # particle centres stay this many radii from any wall or collider
     INTERLEAVED_LISTS: bool | None = None     # None: by the backend (see _grow_neighbours)
     BATCH: int | None = None                  # gated steps per read of the controller; None: by the backend
+    FUSED: bool | None = None                 # a step, and a list rebuild, in one launch each (wcsph.k_step,
+                                              # neighbours.k_rebuild); None: on a GPU
     LISTS_CHECKED_AT_ONCE = False             # WCSPH: an overflow is read with the controller, after the batch
     SKIN = SKIN                               # Verlet skin in units of h (neighbours.SKIN)
 
@@ -107,7 +109,7 @@ class SPHSolver:
         self.count = ti.ndarray(ti.i32, self.n_cells)
         self.start = ti.ndarray(ti.i32, self.n_cells)
         self.fill = ti.ndarray(ti.i32, self.n_cells)
-        self._scan_buffers: dict[int, object] = {}
+        self._scan_buffers: dict = {}
         self.stats = ti.ndarray(ti.f32, 2)    # max speed, max acceleration
         self.moved = ti.ndarray(ti.i32, 1)    # 1: a particle moved skin/2 from its reference position
         # the step's controller on the device (clock.py), and a gate that stays open
@@ -118,6 +120,7 @@ class SPHSolver:
         # neighbour lists: room for 1.5x the fill lattice's pairs within h + skin, grown on overflow
         self.nb_cap = 0
         self.on_cpu = current_arch() == "cpu"
+        self.fused = (not self.on_cpu) if self.FUSED is None else self.FUSED
         self._grow_neighbours(int(1.5 * 4.0 / 3.0 * math.pi * ((h + self.skin) / params.spacing) ** 3) + 8)
         self.lists_built = 0
 
@@ -156,24 +159,42 @@ class SPHSolver:
         self.ctl.from_numpy(ctl)
 
     # ----------------------------------------------------------------------------- phases
-    def build_lists(self) -> None:
+    def build_lists(self, from_position: bool = False) -> None:
         """Sort the particles by the cell of their reference position (a counting sort: count,
-        scan, scatter, gather) and list the pairs within h + skin there."""
+        scan, scatter, gather) and list the pairs within h + skin there; `from_position`: the
+        reference positions are the current ones first. Fused, all in one launch."""
+        if self.fused:
+            k_rebuild(self.position, self.ref, self.velocity, self.acceleration, self.fluid, self.id,
+                      self.position_b, self.ref_b, self.velocity_b, self.acceleration_b, self.fluid_b, self.id_b,
+                      self.cell, self.count, self.fill, self.start, self.order, *self._block_sums(),
+                      self.verlet, self.verlet_count, self.nb_cap, self.lay, self.h + self.skin, self.origin,
+                      self.inv_cell, self.dims, self.ctl, clock.OVERFLOW, from_position)
+            self._swap_sorted()
+        else:
+            if from_position:
+                self.ref.copy_from(self.position)
+            self._sort()
+            self.list_pairs()
+        while self.LISTS_CHECKED_AT_ONCE and self._overflowed():
+            self.list_pairs()
+        self.lists_built += 1
+        self._life, self._built_at = self.steps - self._built_at, self.steps     # see batch()
+
+    def _sort(self) -> None:
         k_clear2(self.count, self.fill)
         k_count(self.ref, self.cell, self.count, self.origin, self.inv_cell, self.dims)
         exclusive_scan(self.count, self.start, self.n_cells, self._scan_buffer)
         k_scatter(self.cell, self.start, self.fill, self.order)
         k_gather(self.order, self.position, self.ref, self.velocity, self.acceleration, self.fluid, self.id,
                  self.position_b, self.ref_b, self.velocity_b, self.acceleration_b, self.fluid_b, self.id_b)
+        self._swap_sorted()
+
+    def _swap_sorted(self) -> None:
+        """The sorted copies (*_b) become the particle arrays."""
         for name in ("position", "ref", "velocity", "acceleration", "fluid", "id"):
             a, b = getattr(self, name), getattr(self, name + "_b")
             setattr(self, name, b)
             setattr(self, name + "_b", a)
-        self.list_pairs()
-        while self.LISTS_CHECKED_AT_ONCE and self._overflowed():
-            self.list_pairs()
-        self.lists_built += 1
-        self._life, self._built_at = self.steps - self._built_at, self.steps     # see batch()
 
     def list_pairs(self) -> None:
         """The Verlet lists at the sorted reference positions; a list longer than the room
@@ -201,11 +222,17 @@ class SPHSolver:
                 moved = int(self.moved.to_numpy()[0]) != 0
             if not moved:
                 return
-        if not self._lists_from_ref:
-            self.ref.copy_from(self.position)
-        self._lists_from_ref = False
-        self.build_lists()
+        from_position, self._lists_from_ref = not self._lists_from_ref, False
+        self.build_lists(from_position)
         self._lists_valid = True
+
+    def _block_sums(self):
+        """k_rebuild's cell-scan totals: one per SCAN_BLOCK cells, and one per SCAN_BLOCK of those."""
+        if "fused" not in self._scan_buffers:
+            n_blocks = -(-self.n_cells // SCAN_BLOCK)
+            self._scan_buffers["fused"] = (ti.ndarray(ti.i32, n_blocks),
+                                           ti.ndarray(ti.i32, -(-n_blocks // SCAN_BLOCK)))
+        return self._scan_buffers["fused"]
 
     def _scan_buffer(self, level: int, size: int):
         """The cell scan's totals at one level (kept: the grid's size never changes)."""
@@ -280,19 +307,31 @@ class SPHSolver:
         clock.k_arm(self.ctl, t_target)
         run = self.phase_runner(False)
         for _ in range(self.batch()):
-            self.gated_step(run)
+            if self.fused:
+                self.fused_step()
+            else:
+                self.gated_step(run)
         self.pull_clock()
+
+    def fused_step(self) -> None:
+        """One gated step in one launch (wcsph.k_step)."""
+        k_step(self.position, self.velocity, self.acceleration, self.ref, self.fluid, self.number_density,
+               self.density, self.pressure, self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
+               self.prm, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom, self.ctype, self.cprm, self.sdf,
+               self.stats, self.ctl, 0.5 * self.skin, self.params.density_kind, self.params.pressure_kind,
+               self.tension)
 
     def batch(self) -> int:
         """Gated steps to launch before the next read: on a GPU, about as many as the current
-        lists have left if they last as long as the last ones did (steps launched after the gate
-        closes cost a launch each and do nothing); on the CPU one, since a launch there waits
-        for its kernel anyway and reading the controller costs nothing."""
+        lists have left if they last as long as the last ones did, and a quarter of that once
+        they outlive it (steps launched after the gate closes do nothing and cost the device a
+        few microseconds each); on the CPU one, since a launch there waits for its kernel anyway
+        and reading the controller costs nothing."""
         if self.BATCH is not None:
             return self.BATCH
         if self.on_cpu:
             return 1
-        return min(max(self._life - (self.steps - self._built_at), 1), 32)
+        return min(max(self._life - (self.steps - self._built_at), self._life // 4, 1), 32)
 
     def pull_clock(self) -> None:
         """Read the controller: time, steps, the last dt and whether the lists must be rebuilt

@@ -1,5 +1,5 @@
 """The physics kernels of weakly compressible SPH (Müller, Charypar & Gross 2003; Tait's
-equation of state after Becker & Teschner 2007). Each kernel is one phase of a step, pure: its
+equation of state after Becker & Teschner 2007). Each pass is one phase of a step, pure: its
 arrays and constants come in as arguments.
 
   density     delta_i = sum_j W(x_ij) (+ walls), rho_i = m_i delta_i (Solenthaler & Pajarola
@@ -13,8 +13,8 @@ arrays and constants come in as arguments.
   (forces end with the step length: CFL on sound + flow speed, force limit)
   advance     leapfrog: v_{n+1/2} = v_{n-1/2} + a_n (dt_{n-1/2} + dt_{n+1/2}) / 2,
               x_{n+1} = x_n + v_{n+1/2} dt_{n+1/2}; walls and colliders
-Every kernel of a step is gated on the controller array (clock.py), so that a GPU can run
-several steps without reading anything back.
+Every pass of a step is gated on the controller array (clock.py), so that a GPU can run
+several steps without reading anything back; k_step runs one whole step in one launch.
 """
 import taichi as ti
 
@@ -25,6 +25,8 @@ from .clock import (AMAX, CAP, CFL_HS, DT, GO, HS, KICK, MIN_DT, MOVED, SOUND, U
                     gate_open, land_on_target)
 from .params import F_B, F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA
 from .types import D1, F1, F2, F4, I1, P_H, V3, box_of, consts_of, ivec2, raise_max, vec3
+
+T = ti.template()      # the passes' arrays: the kernel's own, passed through
 
 
 @ti.func
@@ -45,11 +47,10 @@ def color_tension(sigma: ti.f32, n, lap: ti.f32, rho: ti.f32, h: ti.f32, thresho
     return a
 
 
-@ti.kernel
-def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure: F1,
-              verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
-              prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4,
-              ctype: I1, cprm: F2, sdf: F1, ctl: D1, dkern: ti.template()):
+@ti.func
+def density_pass(position: T, fluid: T, number_density: T, density: T, pressure: T, verlet: T,
+                 verlet_count: T, near: T, near_count: T, lay: T, prm: T, ftab: T, ghost_t: T, ghost_g: T,
+                 ctype: T, cprm: T, sdf: T, ctl: T, dkern: T):
     """Density and pressure from the Verlet list; also copies the entries now within h (and not
     coincident) into the exact list `near` that the force pass reads, without branching.
     `prm`: the constants (types.consts_of, box_of)."""
@@ -81,12 +82,11 @@ def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure
             pressure[i] = ti.max(ftab[f, F_B] * ((r / ftab[f, F_RHO0]) ** c.gamma - 1.0), 0.0)
 
 
-@ti.kernel
-def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1,
-             density: F1, pressure: F1, near: I1, near_count: I1, lay: ivec2,
-             prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2,
-             ctype: I1, cprm: F2, sdf: F1, stats: F1, ctl: D1, pkern: ti.template(),
-             tension: ti.template()):
+@ti.func
+def forces_pass(position: T, velocity: T, acceleration: T, fluid: T, number_density: T, density: T,
+                pressure: T, near: T, near_count: T, lay: T, prm: T, ftab: T, ghost_t: T, ghost_g: T,
+                ghost_mom: T, ctype: T, cprm: T, sdf: T, stats: T, ctl: T, pkern: T,
+                tension: T):
     """Accelerations (pressure, viscosity, surface tension, gravity, walls), then the step length
     from the largest speed and acceleration (kept in stats[0], stats[1]; see time_step)."""
     h = prm[P_H]
@@ -171,9 +171,9 @@ def time_step(stats: ti.template(), ctl: ti.template()):
         land_on_target(ctl, ti.min(dt, ctl[CAP]))
 
 
-@ti.kernel
-def k_advance(position: V3, velocity: V3, acceleration: V3, ref: V3, limit: ti.f32,
-              prm: F1, ctype: I1, cprm: F2, sdf: F1, ctl: D1):
+@ti.func
+def advance_pass(position: T, velocity: T, acceleration: T, ref: T, limit: ti.f32, prm: T, ctype: T, cprm: T,
+                 sdf: T, ctl: T):
     """Leapfrog, v_{n+1/2} = v_{n-1/2} + KICK a_n, x_{n+1} = x_n + DT v_{n+1/2}; then the walls
     and colliders (boundaries.collide_one); MOVED if a particle is now `limit` or more from
     where the lists were built; then the step ends (clock.end_step)."""
@@ -188,6 +188,55 @@ def k_advance(position: V3, velocity: V3, acceleration: V3, ref: V3, limit: ti.f
                 ctl[MOVED] = 1.0          # a plain store: every writer writes 1
     if gate_open(ctl):
         end_step(ctl)
+
+
+# ------------------------------------------------------------------ the passes as kernels
+# Each pass alone (one step at a time on the CPU, the density before a frame is read out, the
+# timed step of bench/solver.py --phases), and k_step: a whole gated step in one launch, for the
+# batches of steps a GPU runs between reads. Its loops run one after another on the device, as
+# separate launches would, but the host pays one launch for them: in Taichi's launcher an array
+# argument costs the host about 10 us a launch, and a GPU step of a few hundred thousand
+# particles is shorter than three launches of twenty arrays each (the seventeenth session's H100
+# run: the sim stage's GPU busy 26 % of the time). Not several steps a launch: unrolled, they
+# compile superlinearly (on the CPU 14 s for one step, 47 s for two).
+@ti.kernel
+def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure: F1,
+              verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
+              prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4,
+              ctype: I1, cprm: F2, sdf: F1, ctl: D1, dkern: ti.template()):
+    density_pass(position, fluid, number_density, density, pressure, verlet, verlet_count, near, near_count,
+                 lay, prm, ftab, ghost_t, ghost_g, ctype, cprm, sdf, ctl, dkern)
+
+
+@ti.kernel
+def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1,
+             density: F1, pressure: F1, near: I1, near_count: I1, lay: ivec2,
+             prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2,
+             ctype: I1, cprm: F2, sdf: F1, stats: F1, ctl: D1, pkern: ti.template(),
+             tension: ti.template()):
+    forces_pass(position, velocity, acceleration, fluid, number_density, density, pressure, near, near_count,
+                lay, prm, ftab, ghost_t, ghost_g, ghost_mom, ctype, cprm, sdf, stats, ctl, pkern, tension)
+
+
+@ti.kernel
+def k_advance(position: V3, velocity: V3, acceleration: V3, ref: V3, limit: ti.f32,
+              prm: F1, ctype: I1, cprm: F2, sdf: F1, ctl: D1):
+    advance_pass(position, velocity, acceleration, ref, limit, prm, ctype, cprm, sdf, ctl)
+
+
+@ti.kernel
+def k_step(position: V3, velocity: V3, acceleration: V3, ref: V3, fluid: I1, number_density: F1,
+            density: F1, pressure: F1, verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
+            prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2, ctype: I1, cprm: F2, sdf: F1,
+            stats: F1, ctl: D1, limit: ti.f32, dkern: ti.template(), pkern: ti.template(),
+            tension: ti.template()):
+    """One gated step: density, forces (and the step length), advance."""
+    density_pass(position, fluid, number_density, density, pressure, verlet, verlet_count, near,
+                 near_count, lay, prm, ftab, ghost_t, ghost_g, ctype, cprm, sdf, ctl, dkern)
+    forces_pass(position, velocity, acceleration, fluid, number_density, density, pressure, near,
+                near_count, lay, prm, ftab, ghost_t, ghost_g, ghost_mom, ctype, cprm, sdf, stats, ctl,
+                pkern, tension)
+    advance_pass(position, velocity, acceleration, ref, limit, prm, ctype, cprm, sdf, ctl)
 
 
 @ti.kernel

@@ -174,17 +174,38 @@ def test_interleaved_lists_are_the_same_lists(solver, monkeypatch):
         np.testing.assert_allclose(a[key], b[key], rtol=1e-5, atol=1e-7, err_msg=key)
 
 
+def test_particle_sums_add_every_particle_once():
+    """DFSPH's residuals and the viscosity CG's dot products are summed in chunks of particles
+    (solver/sums.py), the chunks' sums added on the host in float64. Every particle counts once:
+    for a count that is not a multiple of the chunk, uniform values agree with numpy's float64
+    sum to 1e-6 (float32 sums of 1024 terms under 1: relative round-off well under 1e-6), and
+    1s add up exactly."""
+    import taichi as ti
+    from solver.sums import CHUNK, Summer
+
+    n = 5 * CHUNK + 37
+    values = np.random.default_rng(3).uniform(0.0, 1.0, n).astype(np.float32)
+    a, b = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
+    a.from_numpy(values)
+    b.from_numpy(np.ones(n, np.float32))
+    summer = Summer(n)
+    assert summer.total(a) == pytest.approx(values.sum(dtype=np.float64), rel=1e-6)
+    assert summer.totals(a, b) == (pytest.approx(values.sum(dtype=np.float64), rel=1e-6), float(n))
+
+
 def test_batched_gated_steps_match_one_step_at_a_time(monkeypatch):
     """A GPU launches several WCSPH steps between reads of the controller (solver/clock.py),
     each gated so that it does nothing once the lists must be rebuilt or the frame's time is
-    reached. Forced on the CPU with batches of 7: the same steps, the same list rebuilds and a
-    bit-identical state at every frame time as stepping one at a time."""
+    reached, and each one launch (wcsph.k_step). Forced on the CPU with batches of 7: the same
+    steps, the same list rebuilds and a bit-identical state at every frame time as stepping one
+    at a time, three launches a step."""
     from solver.sph import SPHSolver
 
     spec_dict = wcsph_spec(((0.0, 0.1, 0.0), (0.12, 0.25, 0.12)), ((0, 0, 0), (0.3, 0.3, 0.3)))
     runs = []
-    for batch in (None, 7):
+    for batch, fused in ((None, False), (7, True)):
         monkeypatch.setattr(SPHSolver, "BATCH", batch)
+        monkeypatch.setattr(SPHSolver, "FUSED", fused)
         _, _, s = make_solver(spec_dict)
         frames = []
         for k in range(1, 4):
@@ -196,6 +217,33 @@ def test_batched_gated_steps_match_one_step_at_a_time(monkeypatch):
         for key in a:
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
     assert runs[0][-1][2] > 3 and runs[0][-1][0] == 3 / 48
+
+
+def test_one_launch_rebuild_sorts_and_lists_as_the_separate_launches(monkeypatch):
+    """On a GPU the sort and the lists are one launch (neighbours.k_rebuild) with its own cell
+    scan: runs of 256 cells, runs of 256 runs, then a serial scan. On a grid of over 65,536 cells
+    (1 m^3 at h = 4 cm: all three levels in use), forced on the CPU after the block has moved: the
+    same cell starts, particle order and lists as the ten launches it replaces."""
+    from solver.sph import SPHSolver
+
+    spec_dict = wcsph_spec(((0.3, 0.3, 0.3), (0.5, 0.45, 0.4)))
+    built = []
+    for fused in (False, True):
+        monkeypatch.setattr(SPHSolver, "FUSED", fused)
+        _, _, s = make_solver(spec_dict)
+        s.update_lists()
+        s.position.from_numpy(s.position.to_numpy()[::-1] + np.float32(0.05))     # shuffled, moved
+        s._lists_valid = False
+        s.update_lists()
+        lists = s.verlet.to_numpy().reshape(s.n, s.nb_cap)
+        built.append((s.n_cells, s.start.to_numpy(), s.id.to_numpy(), s.ref.to_numpy(),
+                      [tuple(lists[i, :c]) for i, c in enumerate(s.verlet_count.to_numpy())]))
+    (cells, start_a, id_a, ref_a, lists_a), (_, start_b, id_b, ref_b, lists_b) = built
+    assert cells > 256 * 256
+    np.testing.assert_array_equal(start_a, start_b)
+    np.testing.assert_array_equal(id_a, id_b)
+    np.testing.assert_array_equal(ref_a, ref_b)
+    assert lists_a == lists_b and sum(map(len, lists_a)) > 10 * len(lists_a)
 
 
 def test_verlet_lists_hold_every_pair_within_h_until_rebuilt():
