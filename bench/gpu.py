@@ -8,6 +8,7 @@ Sections (issue 21's targets in brackets):
             1M, 1e9 at 4M], and bytes per particle on the device
   dambreak  DFSPH, 1M-particle dam break, simulated seconds per wall second [0.1]
   profile   Taichi's kernel profiler over 20 DFSPH steps at 1M: the kernels that cost most
+  profile_wcsph  the same over 20 WCSPH steps at 4M
   surface   the surfacer's splat and marching cubes at 500k and 4M particles [4M: 0.3 s]
   stage     the sim stage through the CLI: jobs/dambreak.toml at 435k particles, 24 frames,
             with the GPU's utilisation sampled every 100 ms by nvidia-smi [busy >= 95%]
@@ -45,7 +46,9 @@ def kernel_ms() -> dict[str, float]:
     out: dict[str, float] = {}
     for m in re.finditer(r"\[\s*[\d.]+%\s+[\d.]+ s\s+(\d+)x \|\s*[\d.]+\s+([\d.]+)\s+[\d.]+ ms\] (\S+)",
                          buf.getvalue()):
-        name = m.group(3).split("_c")[0]
+        # k_apply_kappa_c80_0_kernel_0_range_for: the kernel; the fused WCSPH step by its tasks
+        task = re.match(r"(.*?)_c\d+_\d+_kernel_(\d+)", m.group(3))
+        name = m.group(3) if task is None else task[1] if task[1] != "k_step" else f"k_step[{task[2]}]"
         out[name] = out.get(name, 0.0) + int(m.group(1)) * float(m.group(2))
     return out
 
@@ -106,38 +109,40 @@ def dambreak_section(limit: float) -> None:
 PROFILE = r"""
 import sys, taichi as ti
 sys.path[0] = sys.argv[1]
-backend, n = sys.argv[2], int(sys.argv[3])
+backend, n, solver = sys.argv[2], int(sys.argv[3]), sys.argv[4]
 ti.init(getattr(ti, backend), kernel_profiler=True, log_level=ti.WARN)
 import solver.backend as sb
 sb._current, sb._arch_name = (backend, 0), backend
 sys.argv = sys.argv[:1]
 from bench.solver import scene
 from pipeline.stages.sim import initial_state, make_solver, solver_params
-spec = scene(n, 0.006 * (50_232 / n) ** (1 / 3), "dfsph", fluid="thin")
+spec = scene(n, 0.006 * (50_232 / n) ** (1 / 3), solver, fluid="thin")
 params = solver_params(spec)
 s = make_solver(spec, params, initial_state(spec, params))
 for _ in range(5):
     s.step()
 ti.sync(); ti.profiler.clear_kernel_profiler_info()
-for _ in range(20):
-    s.step()
+steps = s.steps
+while s.steps < steps + 20:          # as the sim stage steps (WCSPH: batches of fused steps)
+    s.advance_some(1e30)
 ti.sync()
+steps = s.steps - steps
 from bench.gpu import kernel_ms
 recs = kernel_ms()
 total = sum(recs.values())
 for name, ms in sorted(recs.items(), key=lambda kv: -kv[1])[:8]:
-    print(f"PROFILE {name} {ms / 20:.3f} ms/step {100 * ms / total:.0f}%")
-print(f"PROFILE total {total / 20:.3f} ms/step in kernels")
+    print(f"PROFILE {name} {ms / steps:.3f} ms/step {100 * ms / total:.0f}%")
+print(f"PROFILE total {total / steps:.3f} ms/step in kernels ({steps} steps)")
 """
 
 
-def profile_section(limit: float) -> None:
-    rc, out = run([PY, "-c", PROFILE, str(ROOT), BACKEND, str(int(1_000_000 * SCALE))], limit)
+def profile_section(limit: float, solver: str = "dfsph", n: int = 1_000_000) -> None:
+    rc, out = run([PY, "-c", PROFILE, str(ROOT), BACKEND, str(int(n * SCALE)), solver], limit)
     lines = [l for l in out.splitlines() if l.startswith("PROFILE")]
     print("\n".join(lines) or out[-1500:], flush=True)
     if lines:
         top = ", ".join(f"{l.split()[1]} {l.split()[2]}" for l in lines[:4])
-        row("DFSPH 1M: kernel ms per step (top 4)", f"{lines[-1].split()[2]} in all; {top}")
+        row(f"{solver.upper()} {n // 1_000_000}M: kernel ms per step (top 4)", f"{lines[-1].split()[2]} in all; {top}")
 
 
 SURFACE = r"""
@@ -254,6 +259,7 @@ def stage_section(limit: float, solver: str = "dfsph", extra: tuple = ()) -> Non
 
 
 SECTIONS = {"solver": (solver_section, 100), "dambreak": (dambreak_section, 45), "profile": (profile_section, 40),
+            "profile_wcsph": (lambda limit: profile_section(limit, "wcsph", 4_000_000), 40),
             "surface": (surface_section, 75), "stage": (stage_section, 150),
             # the same run as the first GPU measurement (WCSPH then), and DFSPH at its default
             # bound (which blew up at this resolution until the twelfth session: see RESULTS.md)
