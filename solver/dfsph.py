@@ -40,8 +40,10 @@ from .errors import Unstable
 from .neighbours import k_gather_f1
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
 from .sph import SPHSolver, explicit_viscous_limit
-from .sums import Summer
-from .types import F1, F2, F4, I1, P_H, V3, box_of, consts_of, ivec2, raise_max, vec3
+from .sums import Summer, chunk_sums_pass, sweep_open
+from .types import D1, F1, F2, F4, I1, P_H, V3, box_of, consts_of, ivec2, raise_max, vec3
+
+T = ti.template()
 from .viscosity import ImplicitViscosity
 from .wcsph import color_tension
 
@@ -134,52 +136,121 @@ def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.t
     return rate
 
 
-@ti.kernel
-def k_divergence_kappa(position: V3, velocity: V3, near: I1, near_count: I1, gfac: F1, lay: ivec2, alpha: F1,
-                       wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32):
+@ti.func
+def divergence_kappa_pass(position: T, velocity: T, near: T, near_count: T, gfac: T, lay: T, alpha: T,
+                          wall_grad: T, kappa: T, residual: T, dt: ti.f32, go: T):
     """kappa_i = alpha_i max(D delta_i / Dt, 0) / dt for particles with a full neighbourhood;
     residual[i] the rate each compresses at."""
     for i in position:
-        rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad)
-        rate = ti.select((rate > 0.0) & (near_count[i] >= MIN_DIVERGENCE_NEIGHBOURS), rate, 0.0)
-        kappa[i] = alpha[i] * rate / dt
-        residual[i] = rate
+        if sweep_open(go):
+            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad)
+            rate = ti.select((rate > 0.0) & (near_count[i] >= MIN_DIVERGENCE_NEIGHBOURS), rate, 0.0)
+            kappa[i] = alpha[i] * rate / dt
+            residual[i] = rate
+
+
+@ti.func
+def density_kappa_pass(position: T, velocity: T, number_density: T, near: T, near_count: T, gfac: T, lay: T,
+                       alpha: T, wall_grad: T, kappa: T, residual: T, dt: ti.f32, prm: T, go: T):
+    """kappa_i = alpha_i max(delta*_i - delta0, 0) / dt^2 with delta* = delta + dt D delta / Dt;
+    residual[i] the compression delta* - delta0 (clamped at 0)."""
+    for i in position:
+        if sweep_open(go):
+            c = consts_of(prm)
+            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad)
+            excess = ti.max(number_density[i] + dt * rate - c.lattice, 0.0)
+            kappa[i] = alpha[i] * excess / (dt * dt)
+            residual[i] = excess
+
+
+@ti.func
+def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac: T, lay: T, kappa: T, total: T,
+               wall_grad: T, dt: ti.f32, ftab: T, go: T):
+    """Equation (1) with this sweep's kappa; total += kappa (the step's pressure, and the next
+    step's warm start)."""
+    for i in position:
+        if sweep_open(go):
+            xi = position[i]
+            ki = kappa[i]
+            push = ki * wall_grad[i]
+            base = i * lay.x
+            for m in range(near_count[i]):
+                j = near[base + m * lay.y]
+                push += (ki + kappa[j]) * gfac[base + m * lay.y] * (xi - position[j])
+            velocity[i] -= dt / ftab[fluid[i], F_MASS] * push
+            total[i] += ki
+
+
+@ti.kernel
+def k_divergence_kappa(position: V3, velocity: V3, near: I1, near_count: I1, gfac: F1, lay: ivec2, alpha: F1,
+                       wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32):
+    divergence_kappa_pass(position, velocity, near, near_count, gfac, lay, alpha, wall_grad, kappa, residual, dt,
+                          None)
 
 
 @ti.kernel
 def k_density_kappa(position: V3, velocity: V3, number_density: F1, near: I1, near_count: I1, gfac: F1,
                     lay: ivec2, alpha: F1, wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32, prm: F1):
-    """kappa_i = alpha_i max(delta*_i - delta0, 0) / dt^2 with delta* = delta + dt D delta / Dt;
-    residual[i] the compression delta* - delta0 (clamped at 0)."""
-    for i in position:
-        c = consts_of(prm)
-        rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad)
-        excess = ti.max(number_density[i] + dt * rate - c.lattice, 0.0)
-        kappa[i] = alpha[i] * excess / (dt * dt)
-        residual[i] = excess
+    density_kappa_pass(position, velocity, number_density, near, near_count, gfac, lay, alpha, wall_grad, kappa,
+                       residual, dt, prm, None)
 
 
 @ti.kernel
 def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
                   kappa: F1, total: F1, wall_grad: V3, dt: ti.f32, ftab: F2):
-    """Equation (1) with this sweep's kappa; total += kappa (the step's pressure, and the next
-    step's warm start)."""
-    for i in position:
-        xi = position[i]
-        ki = kappa[i]
-        push = ki * wall_grad[i]
-        base = i * lay.x
-        for m in range(near_count[i]):
-            j = near[base + m * lay.y]
-            push += (ki + kappa[j]) * gfac[base + m * lay.y] * (xi - position[j])
-        velocity[i] -= dt / ftab[fluid[i], F_MASS] * push
-        total[i] += ki
+    apply_pass(position, velocity, fluid, near, near_count, gfac, lay, kappa, total, wall_grad, dt, ftab, None)
 
 
 @ti.kernel
 def k_scale(a: F1, factor: ti.f32):
     for i in a:
         a[i] *= factor
+
+
+# ------------------------------------------------------------- a solve's sweeps, gated on the device
+# On a GPU the host does not read each sweep's error: k_sweeps runs a sweep and decides on the
+# device whether the solve is done (the controller `go`: DONE, ITER, ERR), the host launches as
+# many as the last solve took and reads once, and sweeps launched after DONE do nothing. Each
+# launch is one kernel where a sweep was three launches and a read (see wcsph.k_step for why
+# launches cost). The mean error is the chunk sums added in float64 in order, as Summer.total,
+# over `norm` = n delta0.
+DONE, ITER, ERR = 0, 1, 2
+DIVERGENCE, DENSITY = 0, 1
+
+
+@ti.kernel
+def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1, near_count: I1, gfac: F1,
+             lay: ivec2, alpha: F1, wall_grad: V3, kappa: F1, total: F1, scratch: F1, residual: F1, partial: F1,
+             dt: ti.f32, warm: ti.f32, prm: F1, ftab: F2, go: D1, bound: ti.f64, norm: ti.f64,
+             min_iterations: ti.i32, max_iterations: ti.i32, solve: ti.template(), first: ti.template()):
+    """first: the warm start (total *= warm, applied into `scratch`) and the first error; else:
+    one sweep (apply this kappa, one more iteration), unless done, and the error after it. Done
+    once the mean error is within `bound` after min_iterations sweeps, or after max_iterations."""
+    if ti.static(first):
+        go[DONE], go[ITER], go[ERR] = 0.0, 0.0, 0.0
+        for i in total:
+            total[i] *= warm
+        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, total, scratch, wall_grad, dt, ftab, go)
+    else:
+        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, kappa, total, wall_grad, dt, ftab, go)
+        if go[DONE] < 0.5:
+            go[ITER] += 1.0
+            if go[ITER] >= max_iterations:
+                go[DONE] = 1.0
+    if ti.static(solve == DIVERGENCE):
+        divergence_kappa_pass(position, velocity, near, near_count, gfac, lay, alpha, wall_grad, kappa, residual,
+                              dt, go)
+    else:
+        density_kappa_pass(position, velocity, number_density, near, near_count, gfac, lay, alpha, wall_grad,
+                           kappa, residual, dt, prm, go)
+    chunk_sums_pass(residual, partial, go)
+    if go[DONE] < 0.5:
+        s = ti.cast(0.0, ti.f64)
+        for c in range(partial.shape[0]):
+            s += ti.cast(partial[c], ti.f64)
+        go[ERR] = s / norm
+        if go[ERR] <= bound and go[ITER] >= min_iterations:
+            go[DONE] = 1.0
 
 
 @ti.kernel
@@ -327,7 +398,12 @@ class DFSPHSolver(SPHSolver):
         self.wall_grad = ti.Vector.ndarray(3, ti.f32, shape=n)
         self.normal = ti.Vector.ndarray(3, ti.f32, shape=n)     # Akinci et al. 2013's surface normals
         self.residual = ti.ndarray(ti.f32, n)
-        self._sum = Summer(n).total
+        self._summer = Summer(n)
+        self._sum = self._summer.total
+        # the gated sweeps' controller (k_sweeps: DONE, ITER, ERR) and how many sweeps each
+        # solve took last (as many are launched before the first read)
+        self.sweep_ctl = ti.ndarray(ti.f64, 3)
+        self._last_sweeps = {DIVERGENCE: MIN_DIVERGENCE_ITERATIONS, DENSITY: MIN_DENSITY_ITERATIONS}
         # Viscosity: Müller's particle-scale mu is explicit and caps the step; Morris's eta is
         # explicit while the step is within its limit, and solved implicitly beyond it
         table = params.fluid_table
@@ -380,16 +456,19 @@ class DFSPHSolver(SPHSolver):
                          self.prm, self.ftab, self.ghost_t, self.ghost_g, self.visc_t, self.wall_visc,
                          self.ctype, self.cprm, self.sdf, self.kern)
 
-    def _solve(self, kappa_of, total, warm_scale: float, bound: float, dt: float,
+    def _solve(self, solve: int, total, warm_scale: float, bound: float, dt: float,
                min_iterations: int) -> tuple[int, float]:
-        """Jacobi sweeps of equation (1) until kappa_of() reports a mean error under `bound`
-        (at least min_iterations). `total` holds the last solve's kappa times dt^k: it is
-        applied first (warm start) and then accumulates this solve's. Returns (sweeps, error)."""
+        """Jacobi sweeps of equation (1) until the mean error is under `bound` (at least
+        min_iterations). `total` holds the last solve's kappa times dt^k: it is applied first
+        (warm start) and then accumulates this solve's. Returns (sweeps, error). Fused (on a GPU),
+        the sweeps decide on the device (k_sweeps); else the host reads every sweep's error."""
+        if self.fused:
+            return self._gated_solve(solve, total, warm_scale, bound, dt, min_iterations)
         k_scale(total, warm_scale)
         self._apply(total, self.kappa_density_b, dt)      # a scratch total, thrown away
         iterations, err = 0, math.inf
         while iterations < self.max_iterations:
-            kappa_of()
+            self._kappa(solve, dt)
             err = self._sum(self.residual) / (self.n * self.params.lattice_density)
             if err <= bound and iterations >= min_iterations:
                 break
@@ -397,16 +476,44 @@ class DFSPHSolver(SPHSolver):
             iterations += 1
         return iterations, err
 
+    def _gated_solve(self, solve: int, total, warm_scale: float, bound: float, dt: float,
+                     min_iterations: int) -> tuple[int, float]:
+        """_solve with the sweeps gated on the device: the warm start and the first error, then as
+        many sweeps as this solve took last time before the first read, then one more per read."""
+        def sweeps(first: bool) -> None:
+            k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.near, self.near_count,
+                     self.gfac, self.lay, self.alpha, self.wall_grad, self.kappa, total, self.kappa_density_b,
+                     self.residual, self._summer.partial, dt, warm_scale, self.prm, self.ftab, self.sweep_ctl,
+                     bound, self.n * self.params.lattice_density, min_iterations, self.max_iterations,
+                     solve, first)
+
+        sweeps(True)
+        for _ in range(self._last_sweeps[solve]):
+            sweeps(False)
+        while True:
+            done, iterations, err = self.sweep_ctl.to_numpy()
+            if done:
+                break
+            sweeps(False)
+        self._last_sweeps[solve] = max(int(iterations), 1)
+        return int(iterations), float(err)
+
+    def _kappa(self, solve: int, dt: float) -> None:
+        """This sweep's kappa and residual (one launch)."""
+        if solve == DIVERGENCE:
+            k_divergence_kappa(self.position, self.velocity, self.near, self.near_count, self.gfac, self.lay,
+                               self.alpha, self.wall_grad, self.kappa, self.residual, dt)
+        else:
+            k_density_kappa(self.position, self.velocity, self.number_density, self.near, self.near_count,
+                            self.gfac, self.lay, self.alpha, self.wall_grad, self.kappa, self.residual, dt, self.prm)
+
     def _apply(self, kappa, total, dt: float) -> None:
         k_apply_kappa(self.position, self.velocity, self.fluid, self.near, self.near_count, self.gfac, self.lay,
                       kappa, total, self.wall_grad, dt, self.ftab)
 
     def divergence_solve(self, dt: float) -> None:
         """Make the velocity field divergence-free where it compresses (step 2)."""
-        def kappa_of():
-            k_divergence_kappa(self.position, self.velocity, self.near, self.near_count, self.gfac, self.lay,
-                               self.alpha, self.wall_grad, self.kappa, self.residual, dt)
-        it, err = self._solve(kappa_of, self.kappa_divergence, WARM_START / dt, self.max_divergence_error / dt, dt,
+        it, err = self._solve(DIVERGENCE, self.kappa_divergence, WARM_START / dt, self.max_divergence_error / dt, dt,
                               MIN_DIVERGENCE_ITERATIONS)
         k_scale(self.kappa_divergence, dt)
         self.counters["divergence_iterations"] += it
@@ -414,10 +521,7 @@ class DFSPHSolver(SPHSolver):
 
     def density_solve(self, dt: float) -> None:
         """Correct v* so the predicted number density is delta0 where compressed (step 6)."""
-        def kappa_of():
-            k_density_kappa(self.position, self.velocity, self.number_density, self.near, self.near_count,
-                            self.gfac, self.lay, self.alpha, self.wall_grad, self.kappa, self.residual, dt, self.prm)
-        it, err = self._solve(kappa_of, self.kappa_density, WARM_START / (dt * dt), self.max_density_error, dt,
+        it, err = self._solve(DENSITY, self.kappa_density, WARM_START / (dt * dt), self.max_density_error, dt,
                               MIN_DENSITY_ITERATIONS)
         k_scale(self.kappa_density, dt * dt)
         self.counters["density_iterations"] += it

@@ -12,14 +12,30 @@ def k_chunk_sums(a: F1, partial: F1):
     """partial[c]: the sum of a over chunk c of CHUNK particles, in order. The host adds the
     partial sums in float64. (One sum by every thread was an atomic each, and on a GPU took most
     of DFSPH's solve time: 1.5 ms a sweep at 1M particles.)"""
+    chunk_sums_pass(a, partial, None)
+
+
+@ti.func
+def sweep_open(go: ti.template()) -> bool:
+    """No gate (None), or a solve's gate whose DONE (go[0]) is 0 (dfsph.k_sweeps)."""
+    result = True
+    if ti.static(not isinstance(go, type(None))):
+        result = go[0] < 0.5
+    return result
+
+
+@ti.func
+def chunk_sums_pass(a: ti.template(), partial: ti.template(), go: ti.template()):
+    """k_chunk_sums' loop; with a gate `go` (not None), only while go[0] (a solve's DONE) is 0."""
     n = a.shape[0]
     for c in partial:
-        s = 0.0
-        for k in range(CHUNK):
-            i = c * CHUNK + k
-            if i < n:
-                s += a[i]
-        partial[c] = s
+        if sweep_open(go):
+            s = 0.0
+            for k in range(CHUNK):
+                i = c * CHUNK + k
+                if i < n:
+                    s += a[i]
+            partial[c] = s
 
 
 @ti.kernel
@@ -47,7 +63,7 @@ class Summer:
 
     def total(self, a) -> float:
         k_chunk_sums(a, self.partial)
-        return float(self.partial.to_numpy().sum(dtype=np.float64))
+        return float(np.cumsum(self.partial.to_numpy(), dtype=np.float64)[-1])      # in order, as k_sweeps
 
     def totals(self, a, b) -> tuple[float, float]:
         if self.partial2 is None:

@@ -116,6 +116,31 @@ def test_a_small_dam_break_keeps_its_volume():
     assert abs(np.median(last["density"][interior]) / 1000.0 - 1.0) < 0.005
 
 
+def test_sweeps_gated_on_the_device_match_the_hosts_loop(monkeypatch):
+    """On a GPU each solve's sweeps decide on the device whether they are done (dfsph.k_sweeps:
+    one launch a sweep, one read for several), and the lists are rebuilt in one launch. Forced on
+    the CPU for a small dam break's first 0.1 s (a column falling onto the floor: 4-7 sweeps a
+    step at first): the same sweeps in every frame and the same state, bit for bit, as the
+    host's loop, which reads every sweep's error (both add the chunk sums in the same order)."""
+    from solver.sph import SPHSolver
+
+    runs = []
+    for fused in (False, True):
+        monkeypatch.setattr(SPHSolver, "FUSED", fused)
+        _, _, s = dfsph(tiny_spec(((0, 0, 0), (0.1, 0.2, 0.1)), ((0, 0, 0), (0.3, 0.3, 0.1)),
+                                  fluid={"viscosity": 1.0}))
+        frames = []
+        for k in range(1, 4):
+            s.advance_to(k / 30)
+            frames.append((s.steps, s.frame_report(), s.state()))
+        runs.append(frames)
+    for (steps_a, report_a, a), (steps_b, report_b, b) in zip(*runs):
+        assert steps_a == steps_b and report_a == report_b
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert runs[0][0][1]["density_iterations"] > 2
+
+
 # ----------------------------------------------------------------------------------- layering
 def two_layers(heavy_below: bool, viscosity: float = 1.0) -> dict:
     water = {"name": "water", "rest_density": 1000.0, "viscosity": viscosity}
