@@ -7,8 +7,8 @@ them directly. Four kernels, each parallel over blocks and serial inside one:
 1. count_vertices: per block of the band (the blocks whose cells cross the level and their
    upper neighbours: every crossed edge's lower node lies in one), each node's crossed edges
    (3 bits) and how many the nodes before it own (node_first);
-2. place_vertices: the vertex on each such edge, by linear interpolation, in node units from
-   its block's first node (numpy then adds the block's place, in float64);
+2. place_vertices: the vertex on each such edge, by linear interpolation, in metres: its
+   block's first node (in float64 on the host, rounded once) plus its place in the block;
 3. count_triangles: per block whose cells cross the level, each cell's case and the block's
    triangle count;
 4. emit_triangles: each cell's triangles from the table, a vertex id being node_first of the
@@ -82,12 +82,14 @@ def count_vertices(color: R8, nbr: I2, iso: ti.f32, edges: U2, node_first: I2, c
 
 
 @ti.kernel
-def place_vertices(color: R8, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node_first: I2,
-                   local: F2, vnbr: I2, velocity: V3, vertex_velocity: V3, with_velocity: ti.template()):
-    """local[v]: vertex v in node units from its block's first node (linear interpolation along
-    its edge); node_first becomes global (adds offset[s]). With velocity (node-major vectors,
-    vnbr[s, col]: where the velocity of nbr[s, col]'s block is), vertex_velocity[v] the same
-    interpolation of the edge's nodes' velocities."""
+def place_vertices(color: R8, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node_first: I2, origin: F2,
+                   cell: ti.f32, points: V3, vnbr: I2, velocity: V3, vertex_velocity: V3,
+                   with_velocity: ti.template()):
+    """points[v]: vertex v (linear interpolation along its edge), its block row's first node
+    origin[s] plus its place in the block, in metres; node_first becomes global (adds
+    offset[s]). With velocity (node-major vectors, vnbr[s, col]: where the velocity of
+    nbr[s, col]'s block is), vertex_velocity[v] the same interpolation of the edge's nodes'
+    velocities."""
     for s in offset:
         for n in range(B3):
             v = offset[s] + node_first[s, n]
@@ -99,11 +101,10 @@ def place_vertices(color: R8, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node_
                 for a in ti.static(range(3)):
                     if bits >> a & 1:
                         c1 = _value(color, nbr, s, x + int(a == 0), y + int(a == 1), z + int(a == 2))
-                        local[v, 0] = ti.cast(x, ti.f32)
-                        local[v, 1] = ti.cast(y, ti.f32)
-                        local[v, 2] = ti.cast(z, ti.f32)
                         t = (iso - c0) / (c1 - c0)
-                        local[v, a] += t
+                        local = ti.math.vec3(x, y, z)
+                        local[a] += t
+                        points[v] = ti.math.vec3(origin[s, 0], origin[s, 1], origin[s, 2]) + cell * local
                         if ti.static(with_velocity):
                             u0 = velocity[vnbr[s, 0] * B3 + n]
                             x1, y1, z1 = x + int(a == 0), y + int(a == 1), z + int(a == 2)
@@ -228,12 +229,13 @@ def _faces(faces: np.ndarray):
     return D.upload(np.asarray(faces).reshape(-1, 3))
 
 
-def marching_cubes(rows, upper: np.ndarray, blocks: np.ndarray, todo: np.ndarray, iso: float,
+def marching_cubes(rows, upper: np.ndarray, blocks: np.ndarray, todo: np.ndarray, iso: float, cell: float,
                    velocity=None, velocity_slot: np.ndarray | None = None):
-    """(g, faces, vertex_velocity, faces_dev): the `iso` surface of a block-sparse field as
-    vertices in global node coordinates (float64), triangles (int32) counter-clockwise seen
-    from the side below `iso` (outward for a fluid whose color is above it), the vertices'
-    velocities (float32, zero without a velocity field), and the triangles on the device.
+    """(points, faces, vertex_velocity, points_dev, faces_dev): the `iso` surface of a
+    block-sparse field of node spacing `cell` as vertices in metres (float32), triangles
+    (int32) counter-clockwise seen from the side below `iso` (outward for a fluid whose color
+    is above it), the vertices' velocities (float32, zero without a velocity field), and the
+    vertices and triangles on the device.
 
     rows: the color on the device (rows of 8 nodes, the last block all zero); upper: (nb + 1,
     8) each block and its upper neighbours at block offsets CORNER[1:] (Field.upper); blocks:
@@ -255,19 +257,18 @@ def marching_cubes(rows, upper: np.ndarray, blocks: np.ndarray, todo: np.ndarray
     count_vertices(rows, nbr_dev, iso, edges, node_first, n_vert)
     n_vert = D.host(n_vert)
     n_points = int(n_vert.sum())
-    local = D.empty(ti.f32, (n_points, 3))
+    points = D.empty(ti.f32, n_points, 3)
     vertex_velocity = D.empty(ti.f32, n_points, 3)
     with_velocity = velocity is not None
     vnbr = D.upload(velocity_slot[band_nbr].astype(np.int32)) if with_velocity else nbr_dev
     if not with_velocity:
         vertex_velocity = D.zeros(ti.f32, n_points, 3)
-    place_vertices(rows, nbr_dev, iso, D.upload(_exclusive_sum(n_vert)), edges, node_first, local, vnbr,
-                   velocity if with_velocity else vertex_velocity, vertex_velocity, with_velocity)
-    # vertices are numbered block by block: add each one's block origin, in float64 (a grid far
-    # from the origin keeps its precision; the kernels need no 64-bit floats, which some
-    # Vulkan devices lack)
-    g = np.repeat(blocks[band] * B, n_vert, axis=0).astype(np.float64)
-    g += D.host(local)[:n_points]
+    # each block's first node in metres, in float64 here and rounded once (a grid far from the
+    # origin keeps its precision; the kernels need no 64-bit floats, which some Vulkan devices
+    # lack); the vertices add their place in the block on the device
+    origin = D.upload(blocks[band] * (B * cell), ti.f32)
+    place_vertices(rows, nbr_dev, iso, D.upload(_exclusive_sum(n_vert)), edges, node_first, origin, cell,
+                   points, vnbr, velocity if with_velocity else vertex_velocity, vertex_velocity, with_velocity)
 
     cases = D.empty(ti.u8, (len(todo), B3))
     n_tri = D.empty(ti.i32, len(todo))
@@ -278,7 +279,8 @@ def marching_cubes(rows, upper: np.ndarray, blocks: np.ndarray, todo: np.ndarray
     faces = D.empty(ti.i32, (n_faces, 3))
     emit_triangles(cases, D.upload(row[up]), tri_edges, tri_count, D.upload(EDGE_CORNER),
                    D.upload(EDGE_AXIS), D.upload(_exclusive_sum(n_tri)), edges, node_first, faces)
-    return g, D.host(faces)[:n_faces], D.host(vertex_velocity)[:n_points], faces
+    return (D.host(points)[:n_points], D.host(faces)[:n_faces], D.host(vertex_velocity)[:n_points], points,
+            faces)
 
 
 def _exclusive_sum(n: np.ndarray) -> np.ndarray:

@@ -80,8 +80,8 @@ def color_field(positions, velocities, volumes, cell: float, support: float, iso
 
 def marching_cubes(field: Field, iso: float) -> Mesh:
     """The `iso` surface of the field as a mesh with vertex normals and velocities."""
-    points, faces, velocity, faces_dev = _triangulate(field, iso)
-    normals = mc.normals_on_device(D.vec3s(points), faces_dev, len(points), len(faces))
+    points, faces, velocity, points_dev, faces_dev = _triangulate(field, iso)
+    normals = mc.normals_on_device(points_dev, faces_dev, len(points), len(faces))
     return Mesh(points, faces, D.host(normals)[:len(points)], velocity)
 
 
@@ -92,7 +92,7 @@ def surface_mesh(field: Field, iso: float, smoothing_iterations: int, decimate: 
     `outside_solids` out of the solids (water meets a wall or an obstacle instead of passing
     into it: the kernels reach past the particles next to it), with the vertex normals computed
     once, at the end."""
-    points, faces, velocity, _ = _triangulate(field, iso)
+    points, faces, velocity, _, _ = _triangulate(field, iso)
     if len(faces) and (smoothing_iterations or decimate):
         points, faces, velocity = _smooth(points, faces, velocity, smoothing_iterations, decimate)
     if inside is not None and len(points):
@@ -107,19 +107,18 @@ def _with_normals(points: np.ndarray, faces: np.ndarray, velocity: np.ndarray) -
 
 
 def _triangulate(field: Field, iso: float):
-    """(points, faces, velocity, faces on the device) of the `iso` surface: marching cubes
+    """(points, faces, velocity, points and faces on the device) of the `iso` surface: marching cubes
     (surfacing/mc.py) over the blocks whose cells cross `iso`, one vertex per crossed grid
     edge, its velocity interpolated along the edge."""
     empty = Mesh.empty()
     todo = field.crossing_blocks(iso)[0] if field.n_blocks else ()
     if len(todo) == 0:
-        return empty.points, empty.faces, empty.velocity, None
+        return empty.points, empty.faces, empty.velocity, None, None
     slot = None if field.velocity_ids is None else field.velocity_slot.astype(np.int32)
     if slot is not None and field.velocity_rows is None:       # a Field made from numpy (tests)
         field.velocity_rows = D.vec3s(field.velocity.reshape(-1, 3))
-    g, faces, vel, faces_dev = mc.marching_cubes(field.rows, field.upper, field.blocks, todo, iso,
-                                                 field.velocity_rows, slot)
-    return (g * field.cell).astype(np.float32), faces, vel, faces_dev
+    return mc.marching_cubes(field.rows, field.upper, field.blocks, todo, iso, field.cell, field.velocity_rows,
+                             slot)
 
 
 def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
