@@ -35,4 +35,4 @@ if [ "${1:-}" != --dry ]; then
   echo "## GPU tests"
   timeout 120 $PY -m pytest -q -p no:cacheprovider --tb=short -W ignore -m gpu tests/test_gpu.py 2>&1 | tail -n 80
 fi
-timeout 420 $PY bench/gpu.py "$@"
+timeout 470 $PY bench/gpu.py "$@"
