@@ -40,7 +40,7 @@ from .errors import Unstable
 from .neighbours import k_gather_f1
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
 from .sph import SPHSolver, explicit_viscous_limit
-from .sums import Summer, chunk_sums_pass, sweep_open
+from .sums import Summer, chunk_sums_pass, sweep_open, total_pass
 from .types import D1, F1, F2, F4, I1, P_H, V3, box_of, consts_of, ivec2, raise_max, vec3
 
 T = ti.template()
@@ -212,8 +212,8 @@ def k_scale(a: F1, factor: ti.f32):
 # device whether the solve is done (the controller `go`: DONE, ITER, ERR), the host launches as
 # many as the last solve took and reads once, and sweeps launched after DONE do nothing. Each
 # launch is one kernel where a sweep was three launches and a read (see wcsph.k_step for why
-# launches cost). The mean error is the chunk sums added in float64 in order, as Summer.total,
-# over `norm` = n delta0.
+# launches cost). The mean error is the chunk sums' total (sums.total_pass, in the order the
+# host's Summer.total adds them) over `norm` = n delta0.
 DONE, ITER, ERR = 0, 1, 2
 DIVERGENCE, DENSITY = 0, 1
 
@@ -221,7 +221,7 @@ DIVERGENCE, DENSITY = 0, 1
 @ti.kernel
 def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1, near_count: I1, gfac: F1,
              lay: ivec2, alpha: F1, wall_grad: V3, kappa: F1, total: F1, scratch: F1, residual: F1, partial: F1,
-             dt: ti.f32, warm: ti.f32, prm: F1, ftab: F2, go: D1, bound: ti.f64, norm: ti.f64,
+             groups: D1, dt: ti.f32, warm: ti.f32, prm: F1, ftab: F2, go: D1, bound: ti.f64, norm: ti.f64,
              min_iterations: ti.i32, max_iterations: ti.i32, solve: ti.template(), first: ti.template()):
     """first: the warm start (total *= warm, applied into `scratch`) and the first error; else:
     one sweep (apply this kappa, one more iteration), unless done, and the error after it. Done
@@ -244,10 +244,8 @@ def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1
         density_kappa_pass(position, velocity, number_density, near, near_count, gfac, lay, alpha, wall_grad,
                            kappa, residual, dt, prm, go)
     chunk_sums_pass(residual, partial, go)
+    s = total_pass(partial, groups, go)
     if go[DONE] < 0.5:
-        s = ti.cast(0.0, ti.f64)
-        for c in range(partial.shape[0]):
-            s += ti.cast(partial[c], ti.f64)
         go[ERR] = s / norm
         if go[ERR] <= bound and go[ITER] >= min_iterations:
             go[DONE] = 1.0
@@ -483,9 +481,9 @@ class DFSPHSolver(SPHSolver):
         def sweeps(first: bool) -> None:
             k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.near, self.near_count,
                      self.gfac, self.lay, self.alpha, self.wall_grad, self.kappa, total, self.kappa_density_b,
-                     self.residual, self._summer.partial, dt, warm_scale, self.prm, self.ftab, self.sweep_ctl,
-                     bound, self.n * self.params.lattice_density, min_iterations, self.max_iterations,
-                     solve, first)
+                     self.residual, self._summer.partial, self._summer.groups, dt, warm_scale, self.prm,
+                     self.ftab, self.sweep_ctl, bound, self.n * self.params.lattice_density, min_iterations,
+                     self.max_iterations, solve, first)
 
         sweeps(True)
         for _ in range(self._last_sweeps[solve]):

@@ -176,14 +176,21 @@ def test_interleaved_lists_are_the_same_lists(solver, monkeypatch):
 
 def test_particle_sums_add_every_particle_once():
     """DFSPH's residuals and the viscosity CG's dot products are summed in chunks of particles
-    (solver/sums.py), the chunks' sums added on the host in float64. Every particle counts once:
-    for a count that is not a multiple of the chunk, uniform values agree with numpy's float64
-    sum to 1e-6 (float32 sums of 1024 terms under 1: relative round-off well under 1e-6), and
-    1s add up exactly."""
+    (solver/sums.py), the chunks' sums added in float64, in groups and then the groups, in one
+    fixed order. Every particle counts once: for a count that is not a multiple of the chunk (and
+    more chunks than a group holds), uniform values agree with numpy's float64 sum to 1e-6
+    (float32 sums of 1024 terms under 1: relative round-off well under 1e-6), and 1s add up
+    exactly. The device's total (total_pass, what DFSPH's gated sweeps decide on) is the host's
+    (ordered_total) bit for bit."""
     import taichi as ti
-    from solver.sums import CHUNK, Summer
+    from solver.sums import CHUNK, GROUP, Summer, ordered_total, total_pass
+    from solver.types import D1, F1
 
-    n = 5 * CHUNK + 37
+    @ti.kernel
+    def k_total(partial: F1, groups: D1, out: D1):
+        out[0] = total_pass(partial, groups, None)
+
+    n = (GROUP + 6) * CHUNK + 37
     values = np.random.default_rng(3).uniform(0.0, 1.0, n).astype(np.float32)
     a, b = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
     a.from_numpy(values)
@@ -191,6 +198,11 @@ def test_particle_sums_add_every_particle_once():
     summer = Summer(n)
     assert summer.total(a) == pytest.approx(values.sum(dtype=np.float64), rel=1e-6)
     assert summer.totals(a, b) == (pytest.approx(values.sum(dtype=np.float64), rel=1e-6), float(n))
+    summer.total(a)
+    out = ti.ndarray(ti.f64, 1)
+    k_total(summer.partial, summer.groups, out)
+    assert summer.groups.shape[0] == 2
+    assert out.to_numpy()[0] == ordered_total(summer.partial.to_numpy())
 
 
 def test_batched_gated_steps_match_one_step_at_a_time(monkeypatch):
