@@ -117,18 +117,20 @@ def test_a_small_dam_break_keeps_its_volume():
 
 
 def test_sweeps_gated_on_the_device_match_the_hosts_loop(monkeypatch):
-    """On a GPU each solve's sweeps decide on the device whether they are done (dfsph.k_sweeps:
-    one launch a sweep, one read for several), and the lists are rebuilt in one launch. Forced on
-    the CPU for a small dam break's first 0.1 s (a column falling onto the floor: 4-7 sweeps a
-    step at first): the same sweeps in every frame and the same state, bit for bit, as the
-    host's loop, which reads every sweep's error (both add the chunk sums in the same order)."""
-    from solver.sph import SPHSolver
+    """Each solve's sweeps decide on the device whether they are done (dfsph.k_sweeps: one
+    launch a sweep; on a GPU one read for several), and the lists are rebuilt in one launch. For
+    a small dam break's first 0.1 s (a column falling onto the floor: 4-7 sweeps a step at
+    first), with the sweeps run ahead of the reads as on a GPU: the same sweeps in every frame
+    and the same state, bit for bit, as the separate launches and the host's loop, which reads
+    every sweep's error (both add the chunk sums in the same order)."""
+    from solver.dfsph import DFSPHSolver
 
     runs = []
     for fused in (False, True):
-        monkeypatch.setattr(SPHSolver, "FUSED", fused)
+        monkeypatch.setattr(DFSPHSolver, "FUSED", fused)
         _, _, s = dfsph(tiny_spec(((0, 0, 0), (0.1, 0.2, 0.1)), ((0, 0, 0), (0.3, 0.3, 0.1)),
                                   fluid={"viscosity": 1.0}))
+        s.on_cpu = False        # sweeps launched ahead of the reads, as on a GPU
         frames = []
         for k in range(1, 4):
             s.advance_to(k / 30)
