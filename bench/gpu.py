@@ -32,6 +32,9 @@ BACKEND, SCALE = "cuda", 1.0          # --dry: cpu, particle counts / 200 (to ch
 ROWS: list[tuple[str, str, str]] = []          # (what, figure, target)
 
 
+FUSED = ("k_step", "k_sweeps", "k_rebuild")      # kernels of several passes (see solver/)
+
+
 def kernel_ms() -> dict[str, float]:
     """{kernel: total ms} from Taichi's kernel profiler (ti.init(kernel_profiler=True)), the
     offloaded tasks of one kernel added up; for the profiled children below."""
@@ -46,9 +49,9 @@ def kernel_ms() -> dict[str, float]:
     out: dict[str, float] = {}
     for m in re.finditer(r"\[\s*[\d.]+%\s+[\d.]+ s\s+(\d+)x \|\s*[\d.]+\s+([\d.]+)\s+[\d.]+ ms\] (\S+)",
                          buf.getvalue()):
-        # k_apply_kappa_c80_0_kernel_0_range_for: the kernel; the fused WCSPH step by its tasks
+        # k_apply_kappa_c80_0_kernel_0_range_for: the kernel; the fused ones by their tasks
         task = re.match(r"(.*?)_c\d+_\d+_kernel_(\d+)", m.group(3))
-        name = m.group(3) if task is None else task[1] if task[1] != "k_step" else f"k_step[{task[2]}]"
+        name = m.group(3) if task is None else f"{task[1]}[{task[2]}]" if task[1] in FUSED else task[1]
         out[name] = out.get(name, 0.0) + int(m.group(1)) * float(m.group(2))
     return out
 
