@@ -37,49 +37,102 @@ def k_fill_i(a: I1, value: ti.i32):
         a[i] = value
 
 
-@ti.kernel
-def k_clear2(a: I1, b: I1):
+# The sort's passes: each a kernel of its own (SPHSolver's separate launches) and a step of
+# k_rebuild (all in one launch).
+T = ti.template()
+
+
+@ti.func
+def clear_pass(a: T, b: T):
     for i in a:
         a[i] = 0
         b[i] = 0
 
 
-@ti.kernel
-def k_count(position: V3, cell: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3):
+@ti.func
+def count_pass(position: T, cell: T, count: T, origin: T, inv_cell: ti.f32, dims: T):
     for i in position:
         c = flat(cell_of(position[i], origin, inv_cell, dims), dims)
         cell[i] = c
         ti.atomic_add(count[c], 1)
 
 
-@ti.kernel
-def k_scan_blocks(count: I1, start: I1, block_sum: I1, n: ti.i32):
-    """Exclusive scan inside blocks of SCAN_BLOCK cells, blocks in parallel."""
+@ti.func
+def scan_blocks_pass(count: T, start: T, block_sum: T, n: ti.i32):
+    """Exclusive scan inside blocks of SCAN_BLOCK cells, blocks in parallel (count and start
+    may be one array: each entry is read before it is written)."""
     for b in range((n + SCAN_BLOCK - 1) // SCAN_BLOCK):
         s = 0
         for k in range(SCAN_BLOCK):
             c = b * SCAN_BLOCK + k
             if c < n:
+                v = count[c]
                 start[c] = s
-                s += count[c]
+                s += v
         block_sum[b] = s
+
+
+@ti.func
+def scan_serial_pass(a: T, n: ti.i32):
+    """Exclusive scan of n values on one thread."""
+    for _ in range(1):
+        s = 0
+        for c in range(n):
+            v = a[c]
+            a[c] = s
+            s += v
+
+
+@ti.func
+def scan_add_pass(start: T, block_sum: T, n: ti.i32):
+    for c in range(n):
+        start[c] += block_sum[c // SCAN_BLOCK]
+
+
+@ti.func
+def scatter_pass(cell: T, start: T, fill: T, order: T):
+    for i in cell:
+        c = cell[i]
+        order[start[c] + ti.atomic_add(fill[c], 1)] = i
+
+
+@ti.func
+def gather_pass(order: T, position: T, ref: T, velocity: T, acceleration: T, fluid: T, id: T,
+                position_o: T, ref_o: T, velocity_o: T, acceleration_o: T, fluid_o: T, id_o: T):
+    """Permute the particle arrays into sorted order: out[s] = in[order[s]]."""
+    for s in order:
+        i = order[s]
+        position_o[s] = position[i]
+        ref_o[s] = ref[i]
+        velocity_o[s] = velocity[i]
+        acceleration_o[s] = acceleration[i]
+        fluid_o[s] = fluid[i]
+        id_o[s] = id[i]
+
+
+@ti.kernel
+def k_clear2(a: I1, b: I1):
+    clear_pass(a, b)
+
+
+@ti.kernel
+def k_count(position: V3, cell: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3):
+    count_pass(position, cell, count, origin, inv_cell, dims)
+
+
+@ti.kernel
+def k_scan_blocks(count: I1, start: I1, block_sum: I1, n: ti.i32):
+    scan_blocks_pass(count, start, block_sum, n)
 
 
 @ti.kernel
 def k_scan_serial(a: I1, n: ti.i32):
-    """Exclusive scan of up to SCAN_BLOCK values on one thread."""
-    ti.loop_config(serialize=True)
-    s = 0
-    for b in range(n):
-        v = a[b]
-        a[b] = s
-        s += v
+    scan_serial_pass(a, n)
 
 
 @ti.kernel
 def k_scan_add(start: I1, block_sum: I1, n: ti.i32):
-    for c in range(n):
-        start[c] += block_sum[c // SCAN_BLOCK]
+    scan_add_pass(start, block_sum, n)
 
 
 def exclusive_scan(count, start, n: int, buffer) -> None:
@@ -103,24 +156,14 @@ def exclusive_scan(count, start, n: int, buffer) -> None:
 
 @ti.kernel
 def k_scatter(cell: I1, start: I1, fill: I1, order: I1):
-    for i in cell:
-        c = cell[i]
-        slot = start[c] + ti.atomic_add(fill[c], 1)
-        order[slot] = i
+    scatter_pass(cell, start, fill, order)
 
 
 @ti.kernel
 def k_gather(order: I1, position: V3, ref: V3, velocity: V3, acceleration: V3, fluid: I1, id: I1,
              position_o: V3, ref_o: V3, velocity_o: V3, acceleration_o: V3, fluid_o: I1, id_o: I1):
-    """Permute the particle arrays into sorted order: out[s] = in[order[s]]."""
-    for s in order:
-        i = order[s]
-        position_o[s] = position[i]
-        ref_o[s] = ref[i]
-        velocity_o[s] = velocity[i]
-        acceleration_o[s] = acceleration[i]
-        fluid_o[s] = fluid[i]
-        id_o[s] = id[i]
+    gather_pass(order, position, ref, velocity, acceleration, fluid, id,
+                position_o, ref_o, velocity_o, acceleration_o, fluid_o, id_o)
 
 
 @ti.kernel
@@ -176,53 +219,18 @@ def k_rebuild(position: V3, ref: V3, velocity: V3, acceleration: V3, fluid: I1, 
     `from_position` the reference positions are the current ones (ref = position, then sort).
     The cell scan has two levels of SCAN_BLOCK-cell runs and a serial scan of the top level's
     totals (exact: integers)."""
-    n = count.shape[0]
-    nb, nb2 = sums.shape[0], sums2.shape[0]
-    for c in count:
-        count[c] = 0
-        fill[c] = 0
-    for i in position:
-        c = flat(cell_of(position[i] if ti.static(from_position) else ref[i], origin, inv_cell, dims), dims)
-        cell[i] = c
-        ti.atomic_add(count[c], 1)
-    for b in range(nb):                      # runs of cells
-        s = 0
-        for k in range(SCAN_BLOCK):
-            c = b * SCAN_BLOCK + k
-            if c < n:
-                start[c] = s
-                s += count[c]
-        sums[b] = s
-    for b in range(nb2):                     # runs of the runs' totals
-        s = 0
-        for k in range(SCAN_BLOCK):
-            c = b * SCAN_BLOCK + k
-            if c < nb:
-                v = sums[c]
-                sums[c] = s
-                s += v
-        sums2[b] = s
-    ti.loop_config(serialize=True)
-    s = 0
-    for b in range(nb2):
-        v = sums2[b]
-        sums2[b] = s
-        s += v
-    for b in range(nb):
-        sums[b] += sums2[b // SCAN_BLOCK]
-    for c in range(n):
-        start[c] += sums[c // SCAN_BLOCK]
-    for i in cell:
-        c = cell[i]
-        order[start[c] + ti.atomic_add(fill[c], 1)] = i
-    for s_ in order:
-        i = order[s_]
-        position_o[s_] = position[i]
-        ref_o[s_] = position[i] if ti.static(from_position) else ref[i]
-        velocity_o[s_] = velocity[i]
-        acceleration_o[s_] = acceleration[i]
-        fluid_o[s_] = fluid[i]
-        id_o[s_] = id[i]
+    n, nb, nb2 = count.shape[0], sums.shape[0], sums2.shape[0]
+    source = ti.static(position if from_position else ref)      # the reference positions
+    clear_pass(count, fill)
+    count_pass(source, cell, count, origin, inv_cell, dims)
+    scan_blocks_pass(count, start, sums, n)          # runs of cells
+    scan_blocks_pass(sums, sums, sums2, nb)          # runs of the runs' totals, in place
+    scan_serial_pass(sums2, nb2)
+    scan_add_pass(sums, sums2, nb)
+    scan_add_pass(start, sums, n)
+    scatter_pass(cell, start, fill, order)
+    gather_pass(order, position, source, velocity, acceleration, fluid, id,
+                position_o, ref_o, velocity_o, acceleration_o, fluid_o, id_o)
     list_pass(ref_o, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest, at)
 
 

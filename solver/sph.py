@@ -109,7 +109,8 @@ class SPHSolver:
         self.count = ti.ndarray(ti.i32, self.n_cells)
         self.start = ti.ndarray(ti.i32, self.n_cells)
         self.fill = ti.ndarray(ti.i32, self.n_cells)
-        self._scan_buffers: dict = {}
+        self._scan_buffers: dict[int, object] = {}
+        self._fused_sums = None               # k_rebuild's (see _block_sums)
         self.stats = ti.ndarray(ti.f32, 2)    # max speed, max acceleration
         self.moved = ti.ndarray(ti.i32, 1)    # 1: a particle moved skin/2 from its reference position
         # the step's controller on the device (clock.py), and a gate that stays open
@@ -227,12 +228,12 @@ class SPHSolver:
         self._lists_valid = True
 
     def _block_sums(self):
-        """k_rebuild's cell-scan totals: one per SCAN_BLOCK cells, and one per SCAN_BLOCK of those."""
-        if "fused" not in self._scan_buffers:
+        """k_rebuild's cell-scan totals: one per SCAN_BLOCK cells, and one per SCAN_BLOCK of those
+        (made on the first fused rebuild, kept: the grid's size never changes)."""
+        if self._fused_sums is None:
             n_blocks = -(-self.n_cells // SCAN_BLOCK)
-            self._scan_buffers["fused"] = (ti.ndarray(ti.i32, n_blocks),
-                                           ti.ndarray(ti.i32, -(-n_blocks // SCAN_BLOCK)))
-        return self._scan_buffers["fused"]
+            self._fused_sums = (ti.ndarray(ti.i32, n_blocks), ti.ndarray(ti.i32, -(-n_blocks // SCAN_BLOCK)))
+        return self._fused_sums
 
     def _scan_buffer(self, level: int, size: int):
         """The cell scan's totals at one level (kept: the grid's size never changes)."""
