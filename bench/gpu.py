@@ -12,6 +12,8 @@ Sections (issue 21's targets in brackets):
   surface   the surfacer's splat and marching cubes at 500k and 4M particles [4M: 0.3 s]
   stage     the sim stage through the CLI: jobs/dambreak.toml at 435k particles, 24 frames,
             with the GPU's utilisation sampled every 100 ms by nvidia-smi [busy >= 95%]
+  showcase  (only when named) jobs/showcase.toml's sim stage for SHOWCASE_S seconds, a few
+            frames packed into SHOWCASE_PACK (bench/showcase_frames.py) to render elsewhere
 
     python3 bench/gpu.py                      # all
     python3 bench/gpu.py --only surface,stage
@@ -220,19 +222,14 @@ def surface_section(limit: float) -> None:
         row("surfacer", f"failed (rc {rc})")
 
 
-def stage_section(limit: float, solver: str = "dfsph", extra: tuple = ()) -> None:
-    out_dir = Path(tempfile.mkdtemp(prefix="sphshot_gpu_stage_"))
+def sampled_stage(cmd: list[str], limit: float, out_dir: Path) -> tuple[float, int, list[int], list[str]]:
+    """Run a sim stage through the CLI under `limit` seconds with the GPU's utilisation sampled
+    every 100 ms: (wall s, returncode (124: stopped at the limit), utilisation % from the first
+    busy sample to the last, the log's lines)."""
     util_log, log = out_dir / "util.csv", out_dir / "stage.log"
     smi = subprocess.Popen(["nvidia-smi" if BACKEND == "cuda" else "true", "--query-gpu=utilization.gpu",
                             "--format=csv,noheader,nounits", "-lms", "100"],
                            stdout=open(util_log, "w"), stderr=subprocess.DEVNULL)
-    frames = 25 if SCALE == 1 else 3
-    cmd = [PY, "-m", "pipeline.cli", "run", "jobs/dambreak.toml", "--stage", "sim",
-           "--set", f"sim.backend=\"{BACKEND}\"", "--set", f"sim.particle_radius={0.0025 if SCALE == 1 else 0.01}",
-           "--set", f"shot.frame_end={frames}", "--set", f"shot.output=\"{out_dir}\"",
-           "--set", f"sim.solver=\"{solver}\"", *[a for e in extra for a in ("--set", e)]]
-    if solver == "wcsph":           # the example's Akinci tension is DFSPH's: WCSPH's runs as before, without
-        cmd += ["--set", 'sim.surface_tension_model="mueller"', "--set", "fluids.0.surface_tension=0"]
     t0 = time.perf_counter()
     with open(log, "w") as f:
         child = subprocess.Popen(cmd, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT)
@@ -240,26 +237,84 @@ def stage_section(limit: float, solver: str = "dfsph", extra: tuple = ()) -> Non
             rc = child.wait(timeout=limit)
         except subprocess.TimeoutExpired:
             child.kill()
+            child.wait()
             rc = 124
     wall = time.perf_counter() - t0
     smi.terminate()
     smi.wait()
     util = [int(x) for x in util_log.read_text().split() if x.strip().isdigit()]
     busy = [i for i, u in enumerate(util) if u > 0]          # from the first busy sample to the last
-    run_util = util[busy[0]:busy[-1] + 1] if busy else []
-    lines = log.read_text().splitlines()
+    return wall, rc, (util[busy[0]:busy[-1] + 1] if busy else []), log.read_text().splitlines()
+
+
+def busy_text(run_util: list[int]) -> str:
+    mean = sum(run_util) / len(run_util)
+    over = sum(u >= 50 for u in run_util) / len(run_util)
+    return f"GPU busy {mean:.0f}% mean, >= 50% in {100 * over:.0f}% of {len(run_util)} samples"
+
+
+def stage_section(limit: float, solver: str = "dfsph", extra: tuple = ()) -> None:
+    out_dir = Path(tempfile.mkdtemp(prefix="sphshot_gpu_stage_"))
+    frames = 25 if SCALE == 1 else 3
+    cmd = [PY, "-m", "pipeline.cli", "run", "jobs/dambreak.toml", "--stage", "sim",
+           "--set", f"sim.backend=\"{BACKEND}\"", "--set", f"sim.particle_radius={0.0025 if SCALE == 1 else 0.01}",
+           "--set", f"shot.frame_end={frames}", "--set", f"shot.output=\"{out_dir}\"",
+           "--set", f"sim.solver=\"{solver}\"", *[a for e in extra for a in ("--set", e)]]
+    if solver == "wcsph":           # the example's Akinci tension is DFSPH's: WCSPH's runs as before, without
+        cmd += ["--set", 'sim.surface_tension_model="mueller"', "--set", "fluids.0.surface_tension=0"]
+    wall, rc, run_util, lines = sampled_stage(cmd, limit, out_dir)
     sim_lines = [l for l in lines if "sim:" in l and "ALF" not in l]
     print("\n".join(sim_lines[:3] + ["..."] + sim_lines[-4:]), flush=True)
     done = sum("OUTPUT_FILE" in l for l in lines)
     if run_util:
-        mean = sum(run_util) / len(run_util)
-        over = sum(u >= 50 for u in run_util) / len(run_util)
         row(f"sim stage, dambreak.toml at 435k particles, {frames - 1} frames (CLI, {solver.upper()}"
             f"{', ' + ', '.join(extra) if extra else ''})",
-            f"{wall:.1f} s wall (rc {rc}, {done} frames written); GPU busy {mean:.0f}% mean, >= 50% in "
-            f"{100 * over:.0f}% of {len(run_util)} samples", ">= 95% busy")
+            f"{wall:.1f} s wall (rc {rc}, {done} frames written); {busy_text(run_util)}", ">= 95% busy")
     else:
         row(f"sim stage ({solver})", f"{wall:.1f} s wall, rc {rc}, {done} frames written, no GPU samples")
+
+
+def showcase_section(limit: float) -> None:
+    """jobs/showcase.toml's sim stage as a user runs it on a GPU node, for as long as `limit`
+    (SHOWCASE_S overrides it, SHOWCASE_UNTIL ends it at that epoch second); then, with SHOWCASE_PACK set to a folder, a few of its frames
+    packed by bench/showcase_frames.py to be surfaced and rendered elsewhere (at most
+    SHOWCASE_PACK_MB in all: the device's transfer limits)."""
+    import os
+    import re
+
+    limit = float(os.environ.get("SHOWCASE_S", limit))
+    if "SHOWCASE_UNTIL" in os.environ:          # a wall-clock end (epoch s) for the sim, packing after it
+        limit = max(10.0, min(limit, float(os.environ["SHOWCASE_UNTIL"]) - time.time()))
+    out_dir = Path(tempfile.mkdtemp(prefix="sphshot_showcase_"))
+    sets = [f"shot.output=\"{out_dir}\"", f"sim.backend=\"{BACKEND}\""]
+    if SCALE != 1:
+        sets += ["sim.particle_radius=0.024", "shot.frame_end=6"]
+    cmd = [PY, "-m", "pipeline.cli", "run", "jobs/showcase.toml", "--stage", "sim",
+           *[a for s in sets for a in ("--set", s)]]
+    wall, rc, run_util, lines = sampled_stage(cmd, limit, out_dir)
+    sim_lines = [l for l in lines if ("sim:" in l or "Error" in l or "error" in l) and "ALF" not in l]
+    print("\n".join(sim_lines if len(sim_lines) <= 16 else sim_lines[:4] + ["..."] + sim_lines[-12:]), flush=True)
+    written = sorted(int(m[1]) for l in lines if (m := re.search(r"OUTPUT_FILE:.*\.(\d{4})\.h5;", l)))
+    last = written[-1] if written else 0
+    steps = sum(int(m[1]) for l in lines if (m := re.search(r"frame \d+: (\d+) steps", l)))
+    row(f"showcase sim stage (jobs/showcase.toml, {'1.25M particles' if SCALE == 1 else 'dry'}, CLI, "
+        f"{limit:.0f} s allowed)",
+        f"{wall:.1f} s wall, rc {rc}, frames 1-{last} of 120 written ({(last - 1) / 24:.2f} simulated s, "
+        f"{(last - 1) / 24 / max(wall, 1e-9):.4f} simulated s per wall s){f', {steps} steps' if steps else ''}; "
+        + (busy_text(run_util) if run_util else "no GPU samples"), "")
+    pack_dir = os.environ.get("SHOWCASE_PACK")
+    if not pack_dir or not written:
+        return
+    budget = float(os.environ.get("SHOWCASE_PACK_MB", 60)) * 2**20
+    wanted = [last] + [f for f in (24, 48, 72, 96, 12, 36, 60, 84, 108) if f < last and f in written]
+    used = 0
+    for f in wanted[:7]:
+        if used + 16 * 2**20 > budget:
+            break
+        rc, out = run([PY, "bench/showcase_frames.py", "pack", str(out_dir / "showcase" / "v001" / "sim"), pack_dir,
+                       "--frames", str(f)], 60)
+        print(out.strip(), flush=True)
+        used = sum(p.stat().st_size for p in Path(pack_dir).glob("*.sphpack"))
 
 
 SECTIONS = {"solver": (solver_section, 100), "dambreak": (dambreak_section, 45), "profile": (profile_section, 40),
@@ -268,12 +323,13 @@ SECTIONS = {"solver": (solver_section, 100), "dambreak": (dambreak_section, 45),
             # the same run as the first GPU measurement (WCSPH then), and DFSPH at its default
             # bound (which blew up at this resolution until the twelfth session: see RESULTS.md)
             "stage_wcsph": (lambda limit: stage_section(limit, "wcsph"), 100),
-            "stage_dfsph": (lambda limit: stage_section(limit, "dfsph"), 110)}
+            "stage_dfsph": (lambda limit: stage_section(limit, "dfsph"), 110),
+            "showcase": (showcase_section, 300)}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--only", default=",".join(s for s in SECTIONS if s != "stage"))
+    ap.add_argument("--only", default=",".join(s for s in SECTIONS if s not in ("stage", "showcase")))
     ap.add_argument("--dry", action="store_true", help="on the CPU at 1/200 of the sizes: checks the script")
     args = ap.parse_args()
     global BACKEND, SCALE

@@ -6,6 +6,9 @@
 #   bash bench/gpu.sh             # there, from the repository root (carry .gpu): the GPU tests,
 #                                 # then bench/gpu.py; about 5 minutes; ends with one table
 #   bash bench/gpu.sh --dry       # here: the same script on the CPU at 1/200 of the sizes
+#   SHOWCASE_S=300 SHOWCASE_PACK=$OUT GPU_PY_LIMIT=470 bash bench/gpu.sh --only dambreak,showcase
+#                                 # there: the GPU tests, the 1M dam break, then the showcase's sim
+#                                 # for 300 s and a few of its frames packed into $OUT
 #
 # The GPU machine has Python 3.12 with pytest, h5py and rich but no package index, no pyopenvdb
 # and no VTK (over the upload limit), so the solver, the surfacer's kernels and the sim stage run
@@ -18,6 +21,8 @@ if [ "${1:-}" = prepare ]; then
   site=../shared/gpu/make_site.sh
   [ -f "$site" ] || { echo "gpu.sh: $site not found (the leads' GPU folder beside the checkout)" >&2; exit 2; }
   bash "$site" .gpu
+  # meshio (pure Python) reads the mesh colliders' files: the sim stage of jobs/showcase.toml needs it
+  python3 -m pip download -q --no-deps --only-binary=:all: -d .gpu meshio==5.3.5 || exit 3
   exit
 fi
 
@@ -27,6 +32,7 @@ if [ "${1:-}" = --dry ]; then
 elif [ -f .gpu/site312.tar.xz ] && ! python3 -c "import taichi" 2>/dev/null; then
   python3 -c "import tarfile; tarfile.open('.gpu/site312.tar.xz').extractall('/tmp')" || exit 3
   export PYTHONPATH=/tmp/site312
+  for w in .gpu/*.whl; do [ -f "$w" ] && python3 -m zipfile -e "$w" /tmp/site312; done
 fi
 $PY -c "import taichi, numpy, pydantic, h5py" || { echo "gpu.sh: packages missing: run 'bash bench/gpu.sh prepare' here and carry .gpu" >&2; exit 3; }
 
@@ -35,4 +41,4 @@ if [ "${1:-}" != --dry ]; then
   echo "## GPU tests"
   timeout 120 $PY -m pytest -q -p no:cacheprovider --tb=short -W ignore -m gpu tests/test_gpu.py 2>&1 | tail -n 80
 fi
-timeout 470 $PY bench/gpu.py "$@"
+timeout "${GPU_PY_LIMIT:-470}" $PY bench/gpu.py "$@"
