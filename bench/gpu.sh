@@ -2,7 +2,8 @@
 # Every GPU test and benchmark in one call, for a lent GPU machine (see bench/RESULTS.md).
 #
 #   bash bench/gpu.sh prepare     # here, once: the Python packages the GPU machine lacks, built by
-#                                 # ../shared/gpu/make_site.sh into .gpu/ (git-ignored, ~33 MB)
+#                                 # ../shared/gpu/make_site.sh into .gpu/ (git-ignored, ~33 MB), meshio,
+#                                 # and the mesh colliders' level sets (no OpenVDB there: bench/gpu_site)
 #   bash bench/gpu.sh             # there, from the repository root (carry .gpu): the GPU tests,
 #                                 # then bench/gpu.py; about 5 minutes; ends with one table
 #   bash bench/gpu.sh --dry       # here: the same script on the CPU at 1/200 of the sizes
@@ -12,7 +13,8 @@
 #
 # The GPU machine has Python 3.12 with pytest, h5py and rich but no package index, no pyopenvdb
 # and no VTK (over the upload limit), so the solver, the surfacer's kernels and the sim stage run
-# there; the VDB and render paths do not.
+# there (mesh colliders through bench/gpu_site's stand-in for pyopenvdb); the VDB and render
+# paths do not.
 set -uo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 export PYTHONUNBUFFERED=1 ENABLE_TAICHI_HEADER_PRINT=0
@@ -23,6 +25,8 @@ if [ "${1:-}" = prepare ]; then
   bash "$site" .gpu
   # meshio (pure Python) reads the mesh colliders' files: the sim stage of jobs/showcase.toml needs it
   python3 -m pip download -q --no-deps --only-binary=:all: -d .gpu meshio==5.3.5 || exit 3
+  # OpenVDB is not there either: the mesh colliders' level sets, made here, for bench/gpu_site's stand-in
+  .venv/bin/python bench/gpu_levelsets.py jobs/showcase.toml || exit 3
   exit
 fi
 
@@ -33,6 +37,9 @@ elif [ -f .gpu/site312.tar.xz ] && ! python3 -c "import taichi" 2>/dev/null; the
   python3 -c "import tarfile; tarfile.open('.gpu/site312.tar.xz').extractall('/tmp')" || exit 3
   export PYTHONPATH=/tmp/site312
   for w in .gpu/*.whl; do [ -f "$w" ] && python3 -m zipfile -e "$w" /tmp/site312; done
+fi
+if ! $PY -c "import pyopenvdb" 2>/dev/null; then      # mesh colliders: level sets made by 'prepare'
+  export PYTHONPATH="${PYTHONPATH:+$PYTHONPATH:}$PWD/bench/gpu_site"
 fi
 $PY -c "import taichi, numpy, pydantic, h5py" || { echo "gpu.sh: packages missing: run 'bash bench/gpu.sh prepare' here and carry .gpu" >&2; exit 3; }
 
