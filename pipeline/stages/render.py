@@ -173,21 +173,34 @@ class FrameRenderer:
 
     def _ground(self, pl) -> None:
         """A floor under the domain. With the water and clay looks it has no edge in the frame:
-        wide, unlit, and fading from the ground color around the domain to the background's
-        bottom color (a studio cyclorama), so it meets the background without a seam."""
+        unlit, fading from the ground color around the domain to the background's bottom color
+        (a studio cyclorama), so it meets the background without a seam, and going on in that
+        color to the horizon (a plane ground_size times the domain across ended in the frame at
+        its sides: a wedge of the background's top color in the showcase's upper left)."""
         lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
         centre = 0.5 * (lo + hi)
         look = self.look
-        size = (hi - lo) * look["ground_size"]
         if look["shading"] == "pbr":
+            size = (hi - lo) * look["ground_size"]
             plane = self.pv.Plane(center=(centre[0], lo[1] - 1e-4, centre[2]), direction=(0, 1, 0),
                                   i_size=size[0], j_size=size[2])
             pl.add_mesh(plane, color=look["ground_color"], pbr=True, roughness=0.9, metallic=0.0)
             return
+        reach = float(np.linalg.norm(hi - lo))
+        fade = 2 * self._fade_end()              # the fade, finely; beyond it the background's color
         plane = self.pv.Plane(center=(centre[0], lo[1] - 1e-4, centre[2]), direction=(0, 1, 0),
-                              i_size=size[0], j_size=size[2], i_resolution=96, j_resolution=96)
+                              i_size=fade, j_size=fade, i_resolution=96, j_resolution=96)
         plane.point_data["rgb"] = np.round(self._ground_rgb(plane.points) * 255).astype(np.uint8)
         pl.add_mesh(plane, scalars="rgb", rgb=True, lighting=False)
+        far = self.pv.Plane(center=(centre[0], lo[1] - 1e-3 * reach, centre[2]), direction=(0, 1, 0),
+                            i_size=look["ground_size"] * 20 * reach, j_size=look["ground_size"] * 20 * reach)
+        pl.add_mesh(far, color=look["background"], lighting=False)
+
+    def _fade_end(self) -> float:
+        """How far from the domain's centre (in x and z) the ground has faded to the background."""
+        lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
+        reach = float(np.linalg.norm(hi - lo))
+        return max(0.6 * reach, ContactShadow.corner(lo, hi)) + 2.5 * reach
 
     def _ground_rgb(self, points) -> np.ndarray:
         """The unlit ground's color at these points: the ground color out to 0.6 of the
@@ -195,7 +208,7 @@ class FrameRenderer:
         to the background's bottom color."""
         lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
         centre, reach = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
-        flat = max(0.6 * reach, ContactShadow.corner(lo, hi))
+        flat = self._fade_end() - 2.5 * reach
         dist = np.linalg.norm((np.asarray(points) - centre)[:, [0, 2]], axis=1)
         t = np.clip((dist - flat) / (2.5 * reach), 0.0, 1.0)[:, None] ** 0.7
         return (1 - t) * np.asarray(self.look["ground_color"]) + t * np.asarray(self.look["background"])
