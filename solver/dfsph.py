@@ -581,12 +581,12 @@ class DFSPHSolver(SPHSolver):
         speed is taken as at least SPEED_FLOOR of the shot's expected largest speed, so that a
         column at rest does not take steps of max_dt whatever the resolution."""
         if not math.isfinite(self.vmax):
-            raise Unstable(f"a particle's speed is {self.vmax} m/s")
+            raise Unstable(f"a particle's speed is {self.vmax} m/s", where=self.fastest_position())
         if self.vmax > self.params.speed_of_sound:
             # (a blow-up: without this the step shrinks with 1/v and the run crawls on; the
             # example at four times its resolution once took 21,675 steps for one frame)
             raise Unstable(f"a particle's speed is {self.vmax:.3g} m/s, over 10 times the shot's expected "
-                           f"largest speed")
+                           f"largest speed", where=self.fastest_position())
         dt = self.params.cfl * self.params.particle_radius / max(self.vmax, self.speed_floor, 1e-9)
         return min(dt, self.dt_mu, self.params.max_dt)
 

@@ -7,7 +7,12 @@ class SolverError(RuntimeError):
 
 
 class Unstable(SolverError):
-    """The state has blown up mid-frame; the message says how."""
+    """The state has blown up mid-frame; the message says how, and `where` (m), if known, is
+    the fastest particle's position then."""
+
+    def __init__(self, message: str, where: tuple[float, float, float] | None = None):
+        super().__init__(message)
+        self.where = where
 
 
 class TooLarge(SolverError):

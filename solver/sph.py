@@ -343,7 +343,15 @@ class SPHSolver:
         self._moved = bool(c[clock.MOVED] > 0.5) or self._overflowed(float(c[clock.OVERFLOW]))
         if c[clock.UNSTABLE] > 0.5:
             raise Unstable(f"the time step fell to {c[clock.DT]:.3g} s (max acceleration {self.amax:.3g} m/s^2, "
-                           f"max speed {self.vmax:.3g} m/s)")
+                           f"max speed {self.vmax:.3g} m/s)", where=self.fastest_position())
+
+    def fastest_position(self) -> tuple[float, float, float]:
+        """The fastest particle's position (m; a non-finite speed counts as fastest), for an
+        error message: it reads the particle arrays back."""
+        v = self.velocity.to_numpy().astype(np.float64)
+        speed = np.einsum("ij,ij->i", v, v)
+        i = int(np.argmax(np.where(np.isfinite(speed), speed, np.inf)))
+        return tuple(float(x) for x in self.position.to_numpy()[i])
 
     def phase_runner(self, timed: bool):
         """run(name, fn, *args): calls fn, and with `timed` adds its synchronised wall time

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -128,8 +129,30 @@ def test_unstable_sim_stops_naming_frame_and_parameter_and_keeps_earlier_frames(
     assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
     assert "frame 0002: sim unstable: density reached" in lines[0]
     assert "sim.max_density_ratio" in lines[0] and "raise sim.speed_of_sound" in lines[0]
+    # where: the densest particle, and the solid nearest to it, as the job names it
+    assert re.search(r"x rest, at \(-?\d+\.\d{3}, -?\d+\.\d{3}, -?\d+\.\d{3}\) m, \d+\.\d mm (inside|from) "
+                     r"(the domain's [+-][xyz] wall|colliders\[0\] \(sphere\))", lines[0]), lines[0]
     spec = spec_of(job, args)
     assert cache.scan(spec, cache.ShotPaths.for_spec(spec), "sim", spec.frames).valid == (1,)
+
+
+def test_a_blow_up_says_where_and_next_to_what():
+    """The sim stage's blow-up messages give the place (the fastest or densest particle) and the
+    solid nearest to it, by the job's own names: a domain wall, or colliders[i] with its type
+    (a mesh by its file), and whether the point is inside it."""
+    from conftest import tiny_spec
+    from pipeline.spec import ShotSpec
+    from pipeline.stages.sim import place, solver_params
+    from solver.backend import init_taichi
+
+    init_taichi("cpu", 1)
+    spec = ShotSpec.model_validate(tiny_spec(((0.1, 0.1, 0.1), (0.2, 0.2, 0.2)), ((0, 0, 0), (1.0, 0.6, 0.4)),
+                                             colliders=({"type": "sphere", "center": (0.45, 0.25, 0.2), "radius": 0.08},)))
+    params = solver_params(spec)
+    assert place(spec, params, (0.45, 0.335, 0.2)) == ", at (0.450, 0.335, 0.200) m, 5.0 mm from colliders[0] (sphere)"
+    assert place(spec, params, (0.45, 0.25, 0.13)) == ", at (0.450, 0.250, 0.130) m, 10.0 mm inside colliders[0] (sphere)"
+    assert place(spec, params, (0.9, 0.003, 0.2)) == ", at (0.900, 0.003, 0.200) m, 3.0 mm from the domain's -y wall"
+    assert place(spec, params, None) == "" and place(spec, params, (float("nan"), 0, 0)) == ""
 
 
 @pytest.mark.parametrize("fault, message", [

@@ -119,6 +119,29 @@ def log_frame(frame: int, report: dict) -> None:
                      frame, report["viscosity_steps"], report["viscosity_iterations"], report["viscosity_residual"])
 
 
+def place(spec, params: SolverParams, point) -> str:
+    """', at (x, y, z) m, D mm from (or inside) <the nearest solid>' for an error message ('' without a
+    point): the domain's nearest wall or the nearest collider, named as the job names it."""
+    if point is None or not np.isfinite(point).all():
+        return ""
+    import dataclasses
+
+    from solver.boundaries import collider_clearance
+
+    p = np.asarray(point, np.float64)
+    lo, hi = np.array(spec.domain.min), np.array(spec.domain.max)
+    gaps = np.concatenate([p - lo, hi - p])
+    k = int(np.argmin(gaps))
+    best, name = float(gaps[k]), f"the domain's {'+' if k >= 3 else '-'}{'xyz'[k % 3]} wall"
+    for ci, col in enumerate(spec.colliders):
+        one = dataclasses.replace(params, colliders=(params.colliders[ci],))
+        d = float(collider_clearance(one, p[None].astype(np.float32))[0])
+        if d < best:
+            what = f"mesh {col.path}" if col.type == "mesh" else col.type
+            best, name = d, f"colliders[{ci}] ({what})"
+    return f", at ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m, {1000 * abs(best):.1f} mm {'inside' if best < 0 else 'from'} {name}"
+
+
 def check_stable(spec, params: SolverParams, frame: int, data: dict) -> None:
     """Stop with a clear message when the state has blown up; frames before stay on disk."""
     where = f"frame {frame:04d}: sim unstable"
@@ -133,7 +156,8 @@ def check_stable(spec, params: SolverParams, frame: int, data: dict) -> None:
     if ratio > spec.sim.max_density_ratio:
         hint = "raise sim.speed_of_sound or lower sim.cfl" if spec.sim.solver == "wcsph" else \
             "lower sim.max_density_error or sim.cfl"
-        raise StageError(f"{where}: density reached {ratio:.2f}x rest (bound sim.max_density_ratio = "
+        at = place(spec, params, data["position"][int(np.argmax(data["density"] / rho0))])
+        raise StageError(f"{where}: density reached {ratio:.2f}x rest{at} (bound sim.max_density_ratio = "
                          f"{spec.sim.max_density_ratio}); {hint}")
 
 
@@ -264,7 +288,8 @@ def run(spec, frames, paths, progress) -> None:
             try:
                 done = solver.advance_to(spec.frame_time(frame), should_stop=lambda: _STOP["signal"] is not None)
             except Unstable as exc:
-                raise StageError(f"frame {frame:04d}: sim unstable: {exc}; lower sim.cfl or sim.max_dt") from exc
+                raise StageError(f"frame {frame:04d}: sim unstable: {exc}{place(spec, params, exc.where)}; "
+                                 f"lower sim.cfl or sim.max_dt") from exc
             except TooLarge as exc:     # particles crowding together: usually a blow-up too
                 raise StageError(f"frame {frame:04d}: sim: {exc}; {FEWER}") from exc
             if not done:
