@@ -26,32 +26,31 @@ def sweep_open(go: ti.template()) -> bool:
 
 
 @ti.func
+def chunk_sum(a: ti.template(), c: ti.i32) -> ti.f32:
+    """The sum of a over chunk c (particles c CHUNK .. c CHUNK + CHUNK - 1), in order."""
+    n = a.shape[0]
+    s = 0.0
+    for k in range(CHUNK):
+        i = c * CHUNK + k
+        if i < n:
+            s += a[i]
+    return s
+
+
+@ti.func
 def chunk_sums_pass(a: ti.template(), partial: ti.template(), go: ti.template()):
     """k_chunk_sums' loop; with a gate `go` (not None), only while go[0] (a solve's DONE) is 0."""
-    n = a.shape[0]
     for c in partial:
         if sweep_open(go):
-            s = 0.0
-            for k in range(CHUNK):
-                i = c * CHUNK + k
-                if i < n:
-                    s += a[i]
-            partial[c] = s
+            partial[c] = chunk_sum(a, c)
 
 
 @ti.kernel
 def k_chunk_sums2(a: F1, b: F1, partial: F2):
-    """partial[0, c], partial[1, c]: k_chunk_sums of a and of b, in one pass."""
-    n = a.shape[0]
+    """partial[0, c], partial[1, c]: k_chunk_sums of a and of b, in one launch."""
     for c in range(partial.shape[1]):
-        s, t = 0.0, 0.0
-        for k in range(CHUNK):
-            i = c * CHUNK + k
-            if i < n:
-                s += a[i]
-                t += b[i]
-        partial[0, c] = s
-        partial[1, c] = t
+        partial[0, c] = chunk_sum(a, c)
+        partial[1, c] = chunk_sum(b, c)
 
 
 @ti.func
@@ -105,5 +104,5 @@ class Summer:
         if self.partial2 is None:
             self.partial2 = ti.ndarray(ti.f32, (2, self.partial.shape[0]))
         k_chunk_sums2(a, b, self.partial2)
-        s = self.partial2.to_numpy().sum(axis=1, dtype=np.float64)
-        return float(s[0]), float(s[1])
+        p = self.partial2.to_numpy()
+        return ordered_total(p[0]), ordered_total(p[1])
