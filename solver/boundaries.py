@@ -180,12 +180,12 @@ def boundary_sums(xi, c: ti.template(), box: ti.template(), ghost_t: ti.template
     points into the fluid.
 
     The box's edges and corners are exact (domain_walls). Where a collider meets a wall or
-    another collider, the samples beyond both would count twice: in the wedge between a floor
-    and a rock's overhanging base the boundary alone came to 1.1-1.2 rest densities, a
-    compression no solve can remove (the showcase's surge blew up there on the GPU). So the
-    sets are joined as if independent: with f = sum_b W_ib / delta0 each, the union is
-    1 - prod(1 - f) (exact for two orthogonal planes; less than the sum for any overlap), and
-    its gradient the product rule's. A collider alone is as before."""
+    another collider, the samples beyond both would count twice (a lattice filled into the
+    corner between the floor and a box collider read +4.9 % over rest density with WCSPH,
+    +1.9 % with DFSPH). So the sets are joined as if independent: with f = sum_b W_ib / delta0
+    each, the union is 1 - prod(1 - f), and its gradient the product rule's (that corner now
+    reads -0.9 % / -0.3 %: exact for orthogonal planes only with a separable kernel; less than
+    the sum wherever the sets overlap). A collider alone is as before."""
     dens, into = domain_walls(xi, box.lo, box.hi, c.h, ghost_t, ghost_g)
     for k in range(ctype.shape[0]):
         phi, n = collider_sdf(ctype[k], cprm, sdf, k, xi)
