@@ -32,6 +32,7 @@ import numpy as np
 import taichi as ti
 
 from solver import kernels as K
+from solver.neighbours import scatter_pass
 from solver.types import F1, I1, V3, ivec3, vec3
 
 from . import anisotropy as A, device as D
@@ -243,10 +244,9 @@ def k_cube_keys(pos: V3, origin: vec3, inv: ti.f32, dims: ivec3, half: ivec3, ke
 
 @ti.kernel
 def k_place(key: I1, start: I1, fill: I1, order: I1):
-    """order[start[key] ...]: each cube's particles (in no particular order yet)."""
-    for p in key:
-        k = key[p]
-        order[start[k] + ti.atomic_add(fill[k], 1)] = p
+    """order[start[key] ...]: each cube's particles (in no particular order yet): the
+    neighbour sort's scatter, with cubes for cells."""
+    scatter_pass(key, start, fill, order)
 
 
 @ti.kernel
