@@ -41,9 +41,7 @@ from .neighbours import k_gather_f1
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
 from .sph import SPHSolver, explicit_viscous_limit
 from .sums import Summer, chunk_sums_pass, sweep_open, total_pass
-from .types import D1, F1, F2, F4, I1, P_H, V3, box_of, consts_of, ivec2, raise_max, vec3
-
-T = ti.template()
+from .types import D1, F1, F2, F4, I1, P_H, V3, T, box_of, consts_of, ivec2, raise_max, vec3
 from .viscosity import ImplicitViscosity
 from .wcsph import color_tension
 

@@ -6,7 +6,7 @@ within h + skin of it at the reference positions the lists were built at.
 """
 import taichi as ti
 
-from .types import D1, F1, I1, V3, ivec2, ivec3, vec3
+from .types import D1, F1, I1, T, V3, ivec2, ivec3, vec3
 
 SCAN_BLOCK = 256
 # Cells are (h + skin) / CELL_DIV wide; a particle's list neighbours lie within CELL_DIV cells each way. With
@@ -39,7 +39,6 @@ def k_fill_i(a: I1, value: ti.i32):
 
 # The sort's passes: each a kernel of its own (SPHSolver's separate launches) and a step of
 # k_rebuild (all in one launch).
-T = ti.template()
 
 
 @ti.func

@@ -10,6 +10,7 @@ I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 F4 = ti.types.ndarray(dtype=ti.f32, ndim=4)
 D1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+T = ti.template()      # a pass's (ti.func's) arrays: its kernel's own, passed through
 
 
 @ti.func

@@ -24,9 +24,7 @@ from .boundaries import (boundary_sums, collide_one, collider_sdf, domain_walls,
 from .clock import (AMAX, CAP, CFL_HS, DT, GO, HS, KICK, MIN_DT, MOVED, SOUND, UNSTABLE, VMAX, end_step,
                     gate_open, land_on_target)
 from .params import F_B, F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA
-from .types import D1, F1, F2, F4, I1, P_H, V3, box_of, consts_of, ivec2, raise_max, vec3
-
-T = ti.template()      # the passes' arrays: the kernel's own, passed through
+from .types import D1, F1, F2, F4, I1, P_H, V3, T, box_of, consts_of, ivec2, raise_max, vec3
 
 
 @ti.func
