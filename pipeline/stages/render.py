@@ -187,7 +187,8 @@ class FrameRenderer:
             pl.add_mesh(plane, color=look["ground_color"], pbr=True, roughness=0.9, metallic=0.0)
             return
         reach = float(np.linalg.norm(hi - lo))
-        fade = 2 * self._fade_end()              # the fade, finely; beyond it the background's color
+        flat, width = self._fade()
+        fade = 2 * (flat + width)                # the fade, finely; beyond it the background's color
         plane = self.pv.Plane(center=(centre[0], lo[1] - 1e-4, centre[2]), direction=(0, 1, 0),
                               i_size=fade, j_size=fade, i_resolution=96, j_resolution=96)
         plane.point_data["rgb"] = np.round(self._ground_rgb(plane.points) * 255).astype(np.uint8)
@@ -196,21 +197,21 @@ class FrameRenderer:
                             i_size=look["ground_size"] * 20 * reach, j_size=look["ground_size"] * 20 * reach)
         pl.add_mesh(far, color=look["background"], lighting=False)
 
-    def _fade_end(self) -> float:
-        """How far from the domain's centre (in x and z) the ground has faded to the background."""
+    def _fade(self) -> tuple[float, float]:
+        """(flat, width): the ground keeps its color out to `flat` from the domain's centre (in x
+        and z), then fades to the background's over `width`."""
         lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
         reach = float(np.linalg.norm(hi - lo))
-        return max(0.6 * reach, ContactShadow.corner(lo, hi)) + 2.5 * reach
+        return max(0.6 * reach, ContactShadow.corner(lo, hi)), 2.5 * reach
 
     def _ground_rgb(self, points) -> np.ndarray:
         """The unlit ground's color at these points: the ground color out to 0.6 of the
         domain's diagonal from its centre (or to the contact shadow's corners), then fading
         to the background's bottom color."""
         lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
-        centre, reach = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
-        flat = self._fade_end() - 2.5 * reach
-        dist = np.linalg.norm((np.asarray(points) - centre)[:, [0, 2]], axis=1)
-        t = np.clip((dist - flat) / (2.5 * reach), 0.0, 1.0)[:, None] ** 0.7
+        flat, width = self._fade()
+        dist = np.linalg.norm((np.asarray(points) - 0.5 * (lo + hi))[:, [0, 2]], axis=1)
+        t = np.clip((dist - flat) / width, 0.0, 1.0)[:, None] ** 0.7
         return (1 - t) * np.asarray(self.look["ground_color"]) + t * np.asarray(self.look["background"])
 
     def _fluid_meshes(self, frame: int, paths):
