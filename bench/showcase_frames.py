@@ -34,15 +34,11 @@ FORMAT = "sphshot-packed-frame-1"
 
 def pack_frame(src: Path, dst: Path, lo, hi) -> int:
     """Write one sim frame (HDF5) as a packed file; returns its size in bytes."""
-    import h5py
+    from pipeline.formats import read_frame
 
-    with h5py.File(src, "r") as f:
-        pos = f["position"][()].astype(np.float64)
-        vel, rho, fluid = f["velocity"][()], f["density"][()], f["fluid"][()]
-        attrs = {k: (v.tolist() if isinstance(v, np.ndarray) else v.decode() if isinstance(v, bytes) else v)
-                 for k, v in f.attrs.items()}
-    attrs = {k: ([x.decode() if isinstance(x, bytes) else x for x in v] if isinstance(v, list) else
-                 v.item() if isinstance(v, np.generic) else v) for k, v in attrs.items()}
+    data, attrs = read_frame(src)
+    pos = data["position"].astype(np.float64)
+    vel, rho, fluid = data["velocity"], data["density"], data["fluid"]
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     q = np.clip(np.rint((pos - lo) / (hi - lo) * 65535), 0, 65535).astype(np.uint16)
     order = np.lexsort((q[:, 2] >> 9, q[:, 1] >> 9, q[:, 0] >> 9))     # 128 coarse cells an axis
@@ -53,7 +49,7 @@ def pack_frame(src: Path, dst: Path, lo, hi) -> int:
         np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
     tmp = dst.with_name(dst.name + ".tmp")
     with open(tmp, "wb") as fh:
-        fh.write((json.dumps(header) + "\n").encode())
+        fh.write((json.dumps(header, default=lambda v: v.item()) + "\n").encode())     # numpy scalars
         fh.write(lzma.compress(buf.getvalue(), preset=6))
     tmp.replace(dst)
     return dst.stat().st_size
