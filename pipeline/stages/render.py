@@ -33,12 +33,15 @@ PNG_LEVEL = 3
 # translucent mesh out of the image altogether (measured), and plain alpha blending draws it;
 # with "absorption" (water, where the frame has a level set) each vertex is as opaque as the
 # water behind it is deep (Beer-Lambert, _water_alpha), in lengths of that share of the domain's
-# diagonal. "shadow": the contact shadow's strength under the fluid (ContactShadow).
+# diagonal. "shadow": the contact shadow's strength under the fluid (ContactShadow). "body": the
+# water's base color (its color half way to "tint") times this, since water sends little of the
+# sky's diffuse light back: at 1 the example's water read as pale blue jelly. "lamps": the
+# default light rig's intensity, as a share (the sky lights the scene too).
 LOOKS = {
     "water": {"background": (0.66, 0.73, 0.80), "background_top": (0.52, 0.63, 0.77), "domain": False,
               "ground_color": (0.50, 0.52, 0.54), "ground_size": 30.0, "shading": "ibl", "opacity": 0.55,
               "roughness": 0.05, "metallic": 0.0,
-              "tint": (0.0, 0.30, 0.40), "spray_color": (0.93, 0.97, 1.0), "shadow": 0.45,
+              "tint": (0.0, 0.30, 0.40), "body": 0.35, "lamps": 0.6, "spray_color": (0.93, 0.97, 1.0), "shadow": 0.45,
               "absorption": 0.15},
     "clay": {"background": (0.55, 0.55, 0.56), "background_top": (0.45, 0.46, 0.48), "domain": False,
              "ground_color": (0.42, 0.42, 0.43), "ground_size": 30.0, "shading": "phong", "opacity": 1.0,
@@ -139,10 +142,13 @@ class FrameRenderer:
         centre, size = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
         from ..spec import Light
 
-        rig = r.lights or (     # key, fill and rim around the domain
-            Light(position=tuple(centre + size * np.array([1.2, 2.0, 1.5])), intensity=0.9, color=(1.0, 0.97, 0.92)),
-            Light(position=tuple(centre + size * np.array([-1.5, 0.8, 1.0])), intensity=0.35, color=(0.85, 0.9, 1.0)),
-            Light(position=tuple(centre + size * np.array([0.0, 1.5, -2.0])), intensity=0.5),
+        # key, fill and rim around the domain; under the water look's sky (which lights too) at
+        # the look's "lamps" share, so that a pale collider is not burnt white
+        k = self.look.get("lamps", 1.0)
+        rig = r.lights or (
+            Light(position=tuple(centre + size * np.array([1.2, 2.0, 1.5])), intensity=0.9 * k, color=(1.0, 0.97, 0.92)),
+            Light(position=tuple(centre + size * np.array([-1.5, 0.8, 1.0])), intensity=0.35 * k, color=(0.85, 0.9, 1.0)),
+            Light(position=tuple(centre + size * np.array([0.0, 1.5, -2.0])), intensity=0.5 * k),
         )
         for L in rig:
             light = pv.Light(position=tuple(map(float, L.position)), focal_point=tuple(map(float, centre)),
@@ -166,6 +172,10 @@ class FrameRenderer:
             tex.SetInputDataObject(i, img)
         ren = pl.renderer
         ren.UseImageBasedLightingOn()
+        # diffuse light from the prefiltered irradiance cube map: VTK's spherical harmonics take
+        # an equirectangular image only, and for a cube map it warned on every frame (70 lines
+        # in the example's log) before using the irradiance map anyway
+        ren.UseSphericalHarmonicsOff()
         ren.SetEnvironmentTexture(tex, False)
         ren.GetEnvMapIrradiance().SetIrradianceSize(16)
         ren.GetEnvMapLookupTable().SetLUTSize(128)
@@ -248,8 +258,9 @@ class FrameRenderer:
             poly.point_data["motion"] = np.asarray(m.velocity, np.float32)
             color = look.get("color") or (spec.fluids[[f.name for f in spec.fluids].index(key)].color
                                           if key is not None else spec.fluids[0].color)
-            if "tint" in look:          # water: the fluid's color, half way to clear water's
-                color = tuple(0.5 * (a + b) for a, b in zip(color, look["tint"]))
+            if "tint" in look:          # water: the fluid's color, half way to clear water's,
+                # as dim as the little light that water scatters back (look "body")
+                color = tuple(look["body"] * 0.5 * (a + b) for a, b in zip(color, look["tint"]))
             if look["shading"] in ("pbr", "ibl"):
                 kw = dict(pbr=True, metallic=look["metallic"], roughness=look["roughness"])
             else:
