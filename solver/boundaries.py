@@ -2,7 +2,9 @@
 
 Walls and colliders act on the fluid as boundary samples on the fill lattice: the missing
 number density and grad-W sums of the samples beyond a wall are tabulated once
-(kernels.ghost_tables) and read here by the distance to the wall. Colliders give a signed
+(kernels.ghost_tables) and read here by the distance to the wall. DFSPH takes the box's walls
+as mirrors instead (mirror_walls, reflect: the fluid's own images, see solver/dfsph.py); WCSPH
+and every collider keep the tables. Colliders give a signed
 distance (positive outside the solid) and an outward normal; particles are projected out of
 them in the integrator.
 """
@@ -59,6 +61,41 @@ def nearest_walls(x, dmin, dmax, h: ti.f32):
         elif hi < lo and hi < h:
             a[ax], s[ax] = ti.max(hi, 0.0), -1.0
     return a, s
+
+
+@ti.func
+def mirror_walls(x, box: ti.template(), h: ti.f32):
+    """(mask, planes): bit `ax` of mask set where a box wall lies within h of x along axis ax,
+    planes[ax] that wall's coordinate. (Within h, not h / 2, where i's own image could reach:
+    the image of a neighbour j nearer the wall can, and j must see i's image as i sees j's.)"""
+    a, s = nearest_walls(x, box.lo, box.hi, h)
+    mask = 0
+    planes = vec3(0.0)
+    for ax in ti.static(range(3)):
+        if s[ax] != 0.0:
+            mask |= 1 << ax
+            planes[ax] = box.lo[ax] if s[ax] > 0.0 else box.hi[ax]
+    return mask, planes
+
+
+@ti.func
+def reflect(x, sub: ti.i32, planes):
+    """x mirrored in the walls of the axes in bit set `sub` (walls at `planes`)."""
+    y = x
+    for ax in ti.static(range(3)):
+        if (sub >> ax) & 1:
+            y[ax] = 2.0 * planes[ax] - x[ax]
+    return y
+
+
+@ti.func
+def reflect_velocity(v, sub: ti.i32):
+    """v mirrored as reflect mirrors positions (free slip: the normal components flip)."""
+    y = v
+    for ax in ti.static(range(3)):
+        if (sub >> ax) & 1:
+            y[ax] = -v[ax]
+    return y
 
 
 @ti.func
@@ -176,7 +213,7 @@ def collider_sdf(kind: ti.i32, prm: ti.template(), sdf: ti.template(), k: ti.i32
 
 @ti.func
 def boundary_sums(xi, c: ti.template(), box: ti.template(), ghost_t: ti.template(), ghost_g: ti.template(),
-                  ctype: ti.template(), cprm: ti.template(), sdf: ti.template()):
+                  ctype: ti.template(), cprm: ti.template(), sdf: ti.template(), walls: ti.template() = True):
     """(sum_b W_ib, sum_b grad_i W_ib) over the boundary samples of the walls and colliders near
     x_i; colliders as planes at their distance. The tables hold -sum_b grad_i W_ib, which
     points into the fluid.
@@ -187,8 +224,11 @@ def boundary_sums(xi, c: ti.template(), box: ti.template(), ghost_t: ti.template
     +1.9 % with DFSPH). So the sets are joined as if independent: with f = sum_b W_ib / delta0
     each, the union is 1 - prod(1 - f), and its gradient the product rule's (that corner now
     reads -0.9 % / -0.3 %: exact for orthogonal planes only with a separable kernel; less than
-    the sum wherever the sets overlap). A collider alone is as before."""
-    dens, into = domain_walls(xi, box.lo, box.hi, c.h, ghost_t, ghost_g)
+    the sum wherever the sets overlap). A collider alone is as before. With walls=False the
+    box walls are left out (DFSPH mirrors the fluid in them instead: dfsph.k_density_factor)."""
+    dens, into = 0.0, vec3(0.0)
+    if ti.static(walls):
+        dens, into = domain_walls(xi, box.lo, box.hi, c.h, ghost_t, ghost_g)
     for k in range(ctype.shape[0]):
         phi, n = collider_sdf(ctype[k], cprm, sdf, k, xi)
         if phi < c.h:

@@ -7,8 +7,14 @@ for all. A pressure-like kappa_i (= p_i / delta_i^2) changes velocities by
 
     v_i -= dt / m_i [ sum_j (kappa_i + kappa_j) grad W_ij + kappa_i sum_b grad W_ib ]      (1)
 
-which conserves momentum between fluid particles; boundary samples b (walls, colliders) push
-with the particle's own kappa (Akinci et al. 2012). With the DFSPH factor
+which conserves momentum between fluid particles. The box's walls are mirrors: the sums over j
+take in the images of i and of its neighbours in each wall within h (in two or three walls at an
+edge or a corner), as fluid, with their velocities mirrored and their own kappa (ghost
+particles, as Colagrossi & Landrini 2003). So the layer along a wall is held by its mirror image
+as the bulk is held by its neighbours: a sparse layer reads sparse. (Tabulated samples beyond
+the walls read a full lattice whatever the layer held: it sank to half a radius from the wall
+as a sparse layer, and the squeezed-out particles rose up the walls.) Colliders' boundary
+samples b push with the particle's own kappa (Akinci et al. 2012). With the DFSPH factor
 
     alpha_i = 1 / ( |sum_j grad W_ij + sum_b grad W_ib|^2 / m_i + sum_j |grad W_ij|^2 / m_j )
 
@@ -27,7 +33,7 @@ compressing divergence. One step (Bender & Koschier 2017, Algorithm 1):
      mean relative compression is under max_density_error
   7. drift x += dt v*, collide
 Both solves start from the previous step's kappa (warm start). A particle's reported pressure
-is its density solve's kappa times delta^2.
+is both solves' kappa times delta^2.
 """
 import math
 
@@ -35,7 +41,7 @@ import numpy as np
 import taichi as ti
 
 from . import kernels as K
-from .boundaries import boundary_sums, wall_viscosity
+from .boundaries import boundary_sums, mirror_walls, reflect, reflect_velocity, wall_viscosity
 from .errors import Unstable
 from .neighbours import k_gather_f1
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
@@ -106,8 +112,27 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
                 grad_sum += g
                 sq += g.norm_sqr() / ftab[fluid[j], F_MASS]
         near_count[i] = k
-        wd, wg = boundary_sums(xi, c, box, ghost_t, ghost_g, ctype, cprm, sdf)
-        s += wd
+        # the box walls: images of i and its neighbours mirrored in the walls within h (and in
+        # both or all three at an edge or corner), as fluid with their velocities mirrored
+        s_m = 0.0
+        mask, planes = mirror_walls(xi, box, h)
+        if mask != 0:
+            for sub in range(1, 8):
+                if (sub & mask) == sub:
+                    for m in range(-1, k):
+                        j = i if m < 0 else near[base + m * lay.y]
+                        rv = xi - reflect(position[j], sub, planes)
+                        r2 = rv.norm_sqr()
+                        if (r2 < h * h) & (r2 > 1e-18):
+                            s_m += K.w_r2(kern, r2, h)
+                            r = ti.sqrt(r2)
+                            g = K.dw(kern, r, h) / r * rv
+                            grad_sum += g
+                            sq += g.norm_sqr() / ftab[fluid[j], F_MASS]
+        # colliders from their tables, added: the images cover the space beyond the walls that
+        # the fluid mirrors into, which never lies beyond a collider's face too
+        wd, wg = boundary_sums(xi, c, box, ghost_t, ghost_g, ctype, cprm, sdf, False)
+        s += s_m + wd
         mi = ftab[fluid[i], F_MASS]
         number_density[i] = s
         density[i] = mi * s
@@ -123,25 +148,39 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
 
 @ti.func
 def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.template(),
-                 near_count: ti.template(), gfac: ti.template(), lay: ivec2, wall_grad: ti.template()):
-    """D delta_i / Dt = sum_j (v_i - v_j) . grad W_ij + v_i . sum_b grad W_ib (samples at rest)."""
+                 near_count: ti.template(), gfac: ti.template(), lay: ivec2, wall_grad: ti.template(),
+                 prm: ti.template(), kern: ti.template()):
+    """D delta_i / Dt = sum_j (v_i - v_j) . grad W_ij + v_i . sum_b grad W_ib (samples at rest),
+    with the walls' images j' of i and its neighbours (velocities mirrored)."""
     xi, vi = position[i], velocity[i]
     rate = vi.dot(wall_grad[i])
     base = i * lay.x
     for m in range(near_count[i]):
         j = near[base + m * lay.y]
         rate += (vi - velocity[j]).dot(gfac[base + m * lay.y] * (xi - position[j]))
+    h = prm[P_H]
+    mask, planes = mirror_walls(xi, box_of(prm), h)
+    if mask != 0:
+        for sub in range(1, 8):
+            if (sub & mask) == sub:
+                for m in range(-1, near_count[i]):
+                    j = i if m < 0 else near[base + m * lay.y]
+                    rv = xi - reflect(position[j], sub, planes)
+                    r2 = rv.norm_sqr()
+                    if (r2 < h * h) & (r2 > 1e-18):
+                        r = ti.sqrt(r2)
+                        rate += (vi - reflect_velocity(velocity[j], sub)).dot(K.dw(kern, r, h) / r * rv)
     return rate
 
 
 @ti.func
 def divergence_kappa_pass(position: T, velocity: T, near: T, near_count: T, gfac: T, lay: T, alpha: T,
-                          wall_grad: T, kappa: T, residual: T, dt: ti.f32, go: T):
+                          wall_grad: T, kappa: T, residual: T, dt: ti.f32, prm: T, kern: T, go: T):
     """kappa_i = alpha_i max(D delta_i / Dt, 0) / dt for particles with a full neighbourhood;
     residual[i] the rate each compresses at."""
     for i in position:
         if sweep_open(go):
-            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad)
+            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad, prm, kern)
             rate = ti.select((rate > 0.0) & (near_count[i] >= MIN_DIVERGENCE_NEIGHBOURS), rate, 0.0)
             kappa[i] = alpha[i] * rate / dt
             residual[i] = rate
@@ -149,13 +188,13 @@ def divergence_kappa_pass(position: T, velocity: T, near: T, near_count: T, gfac
 
 @ti.func
 def density_kappa_pass(position: T, velocity: T, number_density: T, near: T, near_count: T, gfac: T, lay: T,
-                       alpha: T, wall_grad: T, kappa: T, residual: T, dt: ti.f32, prm: T, go: T):
+                       alpha: T, wall_grad: T, kappa: T, residual: T, dt: ti.f32, prm: T, kern: T, go: T):
     """kappa_i = alpha_i max(delta*_i - delta0, 0) / dt^2 with delta* = delta + dt D delta / Dt;
     residual[i] the compression delta* - delta0 (clamped at 0)."""
     for i in position:
         if sweep_open(go):
             c = consts_of(prm)
-            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad)
+            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad, prm, kern)
             excess = ti.max(number_density[i] + dt * rate - c.lattice, 0.0)
             kappa[i] = alpha[i] * excess / (dt * dt)
             residual[i] = excess
@@ -163,9 +202,9 @@ def density_kappa_pass(position: T, velocity: T, number_density: T, near: T, nea
 
 @ti.func
 def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac: T, lay: T, kappa: T, total: T,
-               wall_grad: T, dt: ti.f32, ftab: T, go: T):
+               wall_grad: T, dt: ti.f32, ftab: T, prm: T, kern: T, go: T):
     """Equation (1) with this sweep's kappa; total += kappa (the step's pressure, and the next
-    step's warm start)."""
+    step's warm start). The walls' images j' carry kappa_j."""
     for i in position:
         if sweep_open(go):
             xi = position[i]
@@ -175,28 +214,42 @@ def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac:
             for m in range(near_count[i]):
                 j = near[base + m * lay.y]
                 push += (ki + kappa[j]) * gfac[base + m * lay.y] * (xi - position[j])
+            h = prm[P_H]
+            mask, planes = mirror_walls(xi, box_of(prm), h)
+            if mask != 0:
+                for sub in range(1, 8):
+                    if (sub & mask) == sub:
+                        for m in range(-1, near_count[i]):
+                            j = i if m < 0 else near[base + m * lay.y]
+                            rv = xi - reflect(position[j], sub, planes)
+                            r2 = rv.norm_sqr()
+                            if (r2 < h * h) & (r2 > 1e-18):
+                                r = ti.sqrt(r2)
+                                push += (ki + kappa[j]) * K.dw(kern, r, h) / r * rv
             velocity[i] -= dt / ftab[fluid[i], F_MASS] * push
             total[i] += ki
 
 
 @ti.kernel
 def k_divergence_kappa(position: V3, velocity: V3, near: I1, near_count: I1, gfac: F1, lay: ivec2, alpha: F1,
-                       wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32):
+                       wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32, prm: F1, kern: ti.template()):
     divergence_kappa_pass(position, velocity, near, near_count, gfac, lay, alpha, wall_grad, kappa, residual, dt,
-                          None)
+                          prm, kern, None)
 
 
 @ti.kernel
 def k_density_kappa(position: V3, velocity: V3, number_density: F1, near: I1, near_count: I1, gfac: F1,
-                    lay: ivec2, alpha: F1, wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32, prm: F1):
+                    lay: ivec2, alpha: F1, wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32, prm: F1,
+                    kern: ti.template()):
     density_kappa_pass(position, velocity, number_density, near, near_count, gfac, lay, alpha, wall_grad, kappa,
-                       residual, dt, prm, None)
+                       residual, dt, prm, kern, None)
 
 
 @ti.kernel
 def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
-                  kappa: F1, total: F1, wall_grad: V3, dt: ti.f32, ftab: F2):
-    apply_pass(position, velocity, fluid, near, near_count, gfac, lay, kappa, total, wall_grad, dt, ftab, None)
+                  kappa: F1, total: F1, wall_grad: V3, dt: ti.f32, ftab: F2, prm: F1, kern: ti.template()):
+    apply_pass(position, velocity, fluid, near, near_count, gfac, lay, kappa, total, wall_grad, dt, ftab, prm, kern,
+               None)
 
 
 @ti.kernel
@@ -220,7 +273,8 @@ DIVERGENCE, DENSITY = 0, 1
 def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1, near_count: I1, gfac: F1,
              lay: ivec2, alpha: F1, wall_grad: V3, kappa: F1, total: F1, scratch: F1, residual: F1, partial: F1,
              groups: D1, dt: ti.f32, warm: ti.f32, prm: F1, ftab: F2, go: D1, bound: ti.f64, norm: ti.f64,
-             min_iterations: ti.i32, max_iterations: ti.i32, solve: ti.template(), first: ti.template()):
+             min_iterations: ti.i32, max_iterations: ti.i32, kern: ti.template(), solve: ti.template(),
+             first: ti.template()):
     """first: the warm start (total *= warm, applied into `scratch`) and the first error; else:
     one sweep (apply this kappa, one more iteration), unless done, and the error after it. Done
     once the mean error is within `bound` after min_iterations sweeps, or after max_iterations."""
@@ -228,19 +282,21 @@ def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1
         go[DONE], go[ITER], go[ERR] = 0.0, 0.0, 0.0
         for i in total:
             total[i] *= warm
-        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, total, scratch, wall_grad, dt, ftab, go)
+        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, total, scratch, wall_grad, dt, ftab, prm,
+                   kern, go)
     else:
-        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, kappa, total, wall_grad, dt, ftab, go)
+        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, kappa, total, wall_grad, dt, ftab, prm,
+                   kern, go)
         if go[DONE] < 0.5:
             go[ITER] += 1.0
             if go[ITER] >= max_iterations:
                 go[DONE] = 1.0
     if ti.static(solve == DIVERGENCE):
         divergence_kappa_pass(position, velocity, near, near_count, gfac, lay, alpha, wall_grad, kappa, residual,
-                              dt, go)
+                              dt, prm, kern, go)
     else:
         density_kappa_pass(position, velocity, number_density, near, near_count, gfac, lay, alpha, wall_grad,
-                           kappa, residual, dt, prm, go)
+                           kappa, residual, dt, prm, kern, go)
     chunk_sums_pass(residual, partial, go)
     s = total_pass(partial, groups, go)
     if go[DONE] < 0.5:
@@ -354,11 +410,12 @@ def k_drift(position: V3, velocity: V3, dt: ti.f32):
 
 
 @ti.kernel
-def k_pressure(number_density: F1, kappa_dt2: F1, inv_dt2: ti.f32, pressure: F1):
-    """p_i = kappa_i delta_i^2 (kappa being p / delta^2 in equation (1)), from the density
-    solve's kappa dt^2."""
+def k_pressure(number_density: F1, kappa_dt2: F1, kappa_dt: F1, inv_dt: ti.f32, pressure: F1):
+    """p_i = kappa_i delta_i^2 (kappa being p / delta^2 in equation (1)), kappa the sum of both
+    solves' (the density solve's kappa dt^2 and the divergence solve's kappa dt): each pushes
+    the particles, and at rest the divergence solve carries part of the weight."""
     for i in pressure:
-        pressure[i] = kappa_dt2[i] * inv_dt2 * number_density[i] ** 2
+        pressure[i] = (kappa_dt2[i] * inv_dt + kappa_dt[i]) * inv_dt * number_density[i] ** 2
 
 
 class DFSPHSolver(SPHSolver):
@@ -487,7 +544,7 @@ class DFSPHSolver(SPHSolver):
                      self.gfac, self.lay, self.alpha, self.wall_grad, self.kappa, total, self.kappa_density_b,
                      self.residual, self._summer.partial, self._summer.groups, dt, warm_scale, self.prm,
                      self.ftab, self.sweep_ctl, bound, self.n * self.params.lattice_density, min_iterations,
-                     self.max_iterations, solve, first)
+                     self.max_iterations, self.kern, solve, first)
 
         sweeps(True)
         for _ in range(0 if self.on_cpu else self._last_sweeps[solve]):
@@ -504,14 +561,15 @@ class DFSPHSolver(SPHSolver):
         """This sweep's kappa and residual (one launch)."""
         if solve == DIVERGENCE:
             k_divergence_kappa(self.position, self.velocity, self.near, self.near_count, self.gfac, self.lay,
-                               self.alpha, self.wall_grad, self.kappa, self.residual, dt)
+                               self.alpha, self.wall_grad, self.kappa, self.residual, dt, self.prm, self.kern)
         else:
             k_density_kappa(self.position, self.velocity, self.number_density, self.near, self.near_count,
-                            self.gfac, self.lay, self.alpha, self.wall_grad, self.kappa, self.residual, dt, self.prm)
+                            self.gfac, self.lay, self.alpha, self.wall_grad, self.kappa, self.residual, dt, self.prm,
+                            self.kern)
 
     def _apply(self, kappa, total, dt: float) -> None:
         k_apply_kappa(self.position, self.velocity, self.fluid, self.near, self.near_count, self.gfac, self.lay,
-                      kappa, total, self.wall_grad, dt, self.ftab)
+                      kappa, total, self.wall_grad, dt, self.ftab, self.prm, self.kern)
 
     def divergence_solve(self, dt: float) -> None:
         """Make the velocity field divergence-free where it compresses (step 2)."""
@@ -616,8 +674,8 @@ class DFSPHSolver(SPHSolver):
     def refresh_fields(self) -> None:
         """Density, and the last density solve's pressure, at the current positions."""
         super().refresh_fields()
-        inv_dt2 = 1.0 / self.dt_prev ** 2 if self.dt_prev > 0 else 0.0
-        k_pressure(self.number_density, self.kappa_density, inv_dt2, self.pressure)
+        inv_dt = 1.0 / self.dt_prev if self.dt_prev > 0 else 0.0
+        k_pressure(self.number_density, self.kappa_density, self.kappa_divergence, inv_dt, self.pressure)
 
     def output_velocity(self):
         return self.velocity        # DFSPH's velocities are at the step's time already

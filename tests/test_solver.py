@@ -172,11 +172,13 @@ def test_interleaved_lists_are_the_same_lists(solver, monkeypatch):
     coalesce) forced on the CPU, through 8 steps of a falling, splashing block with lists
     rebuilt and grown on the way: each particle's list is the same, entry for entry, as in the
     CPU layout, and the states agree to float32 round-off (not bit for bit: with a stride of 1,
-    LLVM vectorises the sums over a list and, under fast math, adds in another order)."""
+    LLVM vectorises the sums over a list and, under fast math, adds in another order). The
+    support is 3.9 r, not 4: on the fill lattice pairs 4 r apart sit exactly at h, and round-off
+    put one in one layout's list and not the other's (DFSPH, the block's corner particle)."""
     from solver.sph import SPHSolver
 
     spec_dict = tiny_spec(((0.0, 0.1, 0.0), (0.12, 0.25, 0.12)), ((0, 0, 0), (0.3, 0.3, 0.3)),
-                          sim={"solver": solver})
+                          sim={"solver": solver, "kernel_radius": 3.9})
     runs = []
     for interleave in (False, True):
         monkeypatch.setattr(SPHSolver, "INTERLEAVED_LISTS", interleave)
@@ -192,7 +194,7 @@ def test_interleaved_lists_are_the_same_lists(solver, monkeypatch):
     (lists_a, a), (lists_b, b) = runs
     assert lists_a == lists_b and sum(map(len, lists_a)) > 10 * len(lists_a)
     for key in ("position", "velocity"):
-        np.testing.assert_allclose(a[key], b[key], rtol=1e-5, atol=1e-7, err_msg=key)
+        np.testing.assert_allclose(a[key], b[key], rtol=1e-5, atol=1e-6, err_msg=key)   # sums in another order
 
 
 def test_particle_sums_add_every_particle_once():
