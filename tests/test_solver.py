@@ -85,10 +85,13 @@ def test_taichi_kernels_match_numpy_and_gradients_are_odd(name):
     np.testing.assert_allclose(gpos.to_numpy(), expect, rtol=1e-4, atol=1e-4 * np.abs(expect).max())
 
 
-def test_ghost_tables_give_rest_density_at_walls_edges_and_corners():
+@pytest.mark.parametrize("solver", ["wcsph", "dfsph"])
+def test_walls_give_rest_density_at_walls_edges_and_corners(solver):
     """A block filled on the lattice into a corner of the domain starts at rest density
-    everywhere it touches a wall (the boundary sums complete the lattice)."""
-    spec, params, s = make_solver(wcsph_spec(((0, 0, 0), (0.16, 0.16, 0.16)), ((0, 0, 0), (0.3, 0.3, 0.3))))
+    everywhere it touches a wall: WCSPH's tabulated samples complete the lattice, and so do
+    DFSPH's images of the fluid in one, two or three walls."""
+    spec, params, s = make_solver(wcsph_spec(((0, 0, 0), (0.16, 0.16, 0.16)), ((0, 0, 0), (0.3, 0.3, 0.3)),
+                                             sim={"solver": solver}))
     d = s.snapshot()
     p = d["position"]
     touching = (p < 0.05 - 1e-6).sum(axis=1) >= 1        # within h of at least one wall...
