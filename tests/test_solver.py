@@ -109,7 +109,9 @@ def test_boundary_sums_where_a_collider_meets_a_wall(solver):
     count once (boundaries.boundary_sums joins them as independent sets): counted twice, the
     corner read +4.9 % (WCSPH) and +1.9 % (DFSPH) over rest, and in a rock's overhanging base
     more than the solve could remove. The join is exact for orthogonal planes only with a
-    separable kernel; with the radial ones it reads up to 1 % under (measured -0.9 %), so 1.5 %."""
+    separable kernel; with the radial ones it reads up to 1 % under (measured -0.9 %), so 1.5 %.
+    DFSPH mirrors the fluid in the floor and adds the collider's samples (the images never lie
+    beyond the collider's face): the corner reads rest density (measured 1000.0 kg/m^3)."""
     spec, params, s = make_solver(wcsph_spec(
         ((0.04, 0.0, 0.04), (0.2, 0.16, 0.26)), ((0, 0, 0), (0.5, 0.3, 0.3)),
         colliders=({"type": "box", "min": (0.2, -0.1, -0.1), "max": (0.7, 0.4, 0.4)},), sim={"solver": solver}))
