@@ -36,12 +36,13 @@ PNG_LEVEL = 3
 # diagonal. "shadow": the contact shadow's strength under the fluid (ContactShadow). "body": the
 # water's base color (its color half way to "tint") times this, since water sends little of the
 # sky's diffuse light back: at 1 the example's water read as pale blue jelly. "lamps": the
-# default light rig's intensity, as a share (the sky lights the scene too).
+# default light rig's intensity, as a share (the sky lights the scene too). "solids": the colliders' colors
+# times this (under the sky a pale collider read flat white).
 LOOKS = {
     "water": {"background": (0.66, 0.73, 0.80), "background_top": (0.52, 0.63, 0.77), "domain": False,
               "ground_color": (0.50, 0.52, 0.54), "ground_size": 30.0, "shading": "ibl", "opacity": 0.55,
               "roughness": 0.05, "metallic": 0.0,
-              "tint": (0.0, 0.30, 0.40), "body": 0.35, "lamps": 0.6, "spray_color": (0.93, 0.97, 1.0), "shadow": 0.45,
+              "tint": (0.0, 0.30, 0.40), "body": 0.35, "lamps": 0.6, "solids": 0.55, "spray_color": (0.93, 0.97, 1.0), "shadow": 0.45,
               "absorption": 0.15},
     "clay": {"background": (0.55, 0.55, 0.56), "background_top": (0.45, 0.46, 0.48), "domain": False,
              "ground_color": (0.42, 0.42, 0.43), "ground_size": 30.0, "shading": "phong", "opacity": 1.0,
@@ -122,7 +123,8 @@ class FrameRenderer:
             pl.add_mesh(box, color=(0.78, 0.8, 0.84), line_width=1.5, lighting=False)
         colliders = collider_meshes(spec) if r.colliders else []
         for mesh, col in colliders:
-            actor = pl.add_mesh(mesh, color=col.color, pbr=True, metallic=0.0, roughness=0.6,
+            actor = pl.add_mesh(mesh, color=tuple(look.get("solids", 1.0) * c for c in col.color), pbr=True,
+                                metallic=0.0, roughness=0.6,
                                 smooth_shading=col.type != "box")   # a box keeps its hard edges
             # drawn a little nearer than it is: the water's mesh hugs a submerged collider, and
             # where the two coincide their depths fought, speckling the collider. (The mode is
