@@ -4,9 +4,8 @@ Walls and colliders act on the fluid as boundary samples on the fill lattice: th
 number density and grad-W sums of the samples beyond a wall are tabulated once
 (kernels.ghost_tables) and read here by the distance to the wall. DFSPH takes the box's walls
 as mirrors instead (mirror_walls, reflect: the fluid's own images, see solver/dfsph.py); WCSPH
-and every collider keep the tables. Colliders give a signed
-distance (positive outside the solid) and an outward normal; particles are projected out of
-them in the integrator.
+and every collider keep the tables. Colliders give a signed distance (positive outside the
+solid) and an outward normal; particles are projected out of them in the integrator.
 """
 import numpy as np
 import taichi as ti

@@ -147,6 +147,19 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
 
 
 @ti.func
+def image_grad(xi, xj, sub: ti.i32, planes, h: ti.f32, kern: ti.template()):
+    """grad_i W(x_i - x_j') for the image x_j' of x_j in the walls of bit set `sub` (at
+    `planes`); 0 where the image lies beyond h."""
+    g = vec3(0.0)
+    rv = xi - reflect(xj, sub, planes)
+    r2 = rv.norm_sqr()
+    if (r2 < h * h) & (r2 > 1e-18):
+        r = ti.sqrt(r2)
+        g = K.dw(kern, r, h) / r * rv
+    return g
+
+
+@ti.func
 def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.template(),
                  near_count: ti.template(), gfac: ti.template(), lay: ivec2, wall_grad: ti.template(),
                  prm: ti.template(), kern: ti.template()):
@@ -165,11 +178,8 @@ def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.t
             if (sub & mask) == sub:
                 for m in range(-1, near_count[i]):
                     j = i if m < 0 else near[base + m * lay.y]
-                    rv = xi - reflect(position[j], sub, planes)
-                    r2 = rv.norm_sqr()
-                    if (r2 < h * h) & (r2 > 1e-18):
-                        r = ti.sqrt(r2)
-                        rate += (vi - reflect_velocity(velocity[j], sub)).dot(K.dw(kern, r, h) / r * rv)
+                    g = image_grad(xi, position[j], sub, planes, h, kern)
+                    rate += (vi - reflect_velocity(velocity[j], sub)).dot(g)
     return rate
 
 
@@ -221,11 +231,7 @@ def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac:
                     if (sub & mask) == sub:
                         for m in range(-1, near_count[i]):
                             j = i if m < 0 else near[base + m * lay.y]
-                            rv = xi - reflect(position[j], sub, planes)
-                            r2 = rv.norm_sqr()
-                            if (r2 < h * h) & (r2 > 1e-18):
-                                r = ti.sqrt(r2)
-                                push += (ki + kappa[j]) * K.dw(kern, r, h) / r * rv
+                            push += (ki + kappa[j]) * image_grad(xi, position[j], sub, planes, h, kern)
             velocity[i] -= dt / ftab[fluid[i], F_MASS] * push
             total[i] += ki
 
