@@ -160,6 +160,30 @@ def image_grad(xi, xj, sub: ti.i32, planes, h: ti.f32, kern: ti.template()):
 
 
 @ti.func
+def image_terms(out, i, position: ti.template(), near: ti.template(), near_count: ti.template(), lay: ivec2,
+                prm: ti.template(), kern: ti.template(), field: ti.template(), ki: ti.f32, rate: ti.template()):
+    """out plus the terms of the walls' images j' of i and its neighbours (in each wall within h
+    of x_i, and in two or three at an edge or corner): with `rate`, sum_j' (v_i - M v_j) . grad
+    W_ij' (`field` the velocities); else sum_j' (kappa_i + kappa_j) grad W_ij' (`field` kappa,
+    ki = kappa_i)."""
+    xi = position[i]
+    h = prm[P_H]
+    mask, planes = mirror_walls(xi, box_of(prm), h)
+    if mask != 0:
+        base = i * lay.x
+        for sub in range(1, 8):
+            if (sub & mask) == sub:
+                for m in range(-1, near_count[i]):
+                    j = i if m < 0 else near[base + m * lay.y]
+                    g = image_grad(xi, position[j], sub, planes, h, kern)
+                    if ti.static(rate):
+                        out += (field[i] - reflect_velocity(field[j], sub)).dot(g)
+                    else:
+                        out += (ki + field[j]) * g
+    return out
+
+
+@ti.func
 def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.template(),
                  near_count: ti.template(), gfac: ti.template(), lay: ivec2, wall_grad: ti.template(),
                  prm: ti.template(), kern: ti.template()):
@@ -171,16 +195,7 @@ def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.t
     for m in range(near_count[i]):
         j = near[base + m * lay.y]
         rate += (vi - velocity[j]).dot(gfac[base + m * lay.y] * (xi - position[j]))
-    h = prm[P_H]
-    mask, planes = mirror_walls(xi, box_of(prm), h)
-    if mask != 0:
-        for sub in range(1, 8):
-            if (sub & mask) == sub:
-                for m in range(-1, near_count[i]):
-                    j = i if m < 0 else near[base + m * lay.y]
-                    g = image_grad(xi, position[j], sub, planes, h, kern)
-                    rate += (vi - reflect_velocity(velocity[j], sub)).dot(g)
-    return rate
+    return image_terms(rate, i, position, near, near_count, lay, prm, kern, velocity, 0.0, True)
 
 
 @ti.func
@@ -224,14 +239,7 @@ def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac:
             for m in range(near_count[i]):
                 j = near[base + m * lay.y]
                 push += (ki + kappa[j]) * gfac[base + m * lay.y] * (xi - position[j])
-            h = prm[P_H]
-            mask, planes = mirror_walls(xi, box_of(prm), h)
-            if mask != 0:
-                for sub in range(1, 8):
-                    if (sub & mask) == sub:
-                        for m in range(-1, near_count[i]):
-                            j = i if m < 0 else near[base + m * lay.y]
-                            push += (ki + kappa[j]) * image_grad(xi, position[j], sub, planes, h, kern)
+            push = image_terms(push, i, position, near, near_count, lay, prm, kern, kappa, ki, False)
             velocity[i] -= dt / ftab[fluid[i], F_MASS] * push
             total[i] += ki
 
