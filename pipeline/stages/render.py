@@ -36,14 +36,14 @@ PNG_LEVEL = 3
 # diagonal. "shadow": the contact shadow's strength under the fluid (ContactShadow). "body": the
 # water's base color (its color half way to "tint") times this, since water sends little of the
 # sky's diffuse light back: at 1 the example's water read as pale blue jelly. "lamps": the
-# default light rig's intensity, as a share (the sky lights the scene too). "solids": the colliders' colors
-# times this (under the sky a pale collider read flat white).
+# default light rig's intensity, as a share (the sky lights the scene too). "solids": the
+# colliders' colors times this (under the sky a pale collider read flat white).
 LOOKS = {
     "water": {"background": (0.66, 0.73, 0.80), "background_top": (0.52, 0.63, 0.77), "domain": False,
               "ground_color": (0.50, 0.52, 0.54), "ground_size": 30.0, "shading": "ibl", "opacity": 0.55,
               "roughness": 0.05, "metallic": 0.0,
-              "tint": (0.0, 0.30, 0.40), "body": 0.35, "lamps": 0.6, "solids": 0.55, "spray_color": (0.93, 0.97, 1.0), "shadow": 0.45,
-              "absorption": 0.15},
+              "tint": (0.0, 0.30, 0.40), "body": 0.35, "lamps": 0.6, "solids": 0.55,
+              "spray_color": (0.93, 0.97, 1.0), "shadow": 0.45, "absorption": 0.15},
     "clay": {"background": (0.55, 0.55, 0.56), "background_top": (0.45, 0.46, 0.48), "domain": False,
              "ground_color": (0.42, 0.42, 0.43), "ground_size": 30.0, "shading": "phong", "opacity": 1.0,
              "specular": 0.08, "specular_power": 10.0, "ambient": 0.25, "diffuse": 0.8,
@@ -175,8 +175,8 @@ class FrameRenderer:
         ren = pl.renderer
         ren.UseImageBasedLightingOn()
         # diffuse light from the prefiltered irradiance cube map: VTK's spherical harmonics take
-        # an equirectangular image only, and for a cube map it warned on every frame (70 lines
-        # in the example's log) before using the irradiance map anyway
+        # an equirectangular image only; for a cube map it warned on every frame (70 lines in the
+        # example's log) and the sky's diffuse light was missing from the picture
         ren.UseSphericalHarmonicsOff()
         ren.SetEnvironmentTexture(tex, False)
         ren.GetEnvMapIrradiance().SetIrradianceSize(16)
