@@ -1,7 +1,8 @@
 """Color-field splatting in Taichi: particles -> the nodes of a block-sparse grid near them.
 
-c(x) = sum_j V_j W(x - x_j) with V_j = m_j / rho_j (the particle's volume, from the sim cache),
-and the velocity field u(x) = sum_j V_j v_j W(x - x_j) / c(x).
+c(x) = sum_j V_j W(x - x_j) with V_j the particle's volume (the caller's: the surface stage gives
+m_j / max(rho_j, rho0_j), reconstruct.particle_volumes), and the velocity field
+u(x) = sum_j V_j v_j W(x - x_j) / c(x).
 
 Storage: blocks of 8^3 nodes (one OpenVDB leaf each), allocated only where some particle's
 support reaches, plus one node of padding (so that every grid cell with a non-zero corner has

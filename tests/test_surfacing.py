@@ -605,6 +605,49 @@ def test_a_resting_block_keeps_its_volume_inside_the_domain(method):
     assert abs(ratio - 1) < (0.02 if method == "anisotropic" else 0.03), ratio
 
 
+def test_particle_volumes_read_a_free_surface_as_rest():
+    """V = m / max(rho, rho0): a particle short of neighbours (at a face, edge or corner) has
+    its rest volume, a compressed one its smaller volume, and a frame without rest densities in
+    its attributes (written before they were) keeps m / rho."""
+    from surfacing.reconstruct import particle_volumes
+
+    data = {"position": np.zeros((4, 3), np.float32), "fluid": np.array([0, 0, 1, 1]),
+            "density": np.array([850.0, 1010.0, 400.0, 800.0], np.float32)}
+    attrs = {"particle_radius": 0.01, "fluid_mass": [8e-3, 6.8e-3], "fluid_rest_density": [1000.0, 850.0]}
+    np.testing.assert_allclose(particle_volumes(data, attrs), [8e-6, 8e-3 / 1010.0, 8e-6, 8e-6], rtol=1e-6)
+    del attrs["fluid_rest_density"]
+    np.testing.assert_allclose(particle_volumes(data, attrs), [8e-3 / 850, 8e-3 / 1010, 6.8e-3 / 400, 6.8e-3 / 800],
+                               rtol=1e-6)
+
+
+def test_a_block_from_the_solver_keeps_its_volume_and_its_corners():
+    """A 0.1 m block of 1,000 particles in mid-air, as the sim stage writes it (DFSPH's densities:
+    0.85 of rest on its faces, 0.61 at its corners) and the surface stage surfaces it: the
+    mesh holds the particles' volume within 2.5 % (measured +1.7 %, ten particles a side: its
+    edges and corners are a large share; with V = m / rho +4.3 %) and reaches at most 0.65 r
+    beyond the block anywhere (measured 0.55 r; with m / rho its corners stood out 0.88 r). The
+    middle of the top face lies within 0.1 r of the block's face (measured -0.03 r)."""
+    from pipeline.stages.sim import frame_attrs, initial_state, make_solver, solver_params
+    from pipeline.stages.surface import surface_frame
+    from pipeline.spec import ShotSpec
+    import pyvista as pv
+
+    spec = ShotSpec.model_validate(tiny_spec(((0.1, 0.1, 0.1), (0.2, 0.2, 0.2)), ((0, 0, 0), (0.3, 0.3, 0.3)),
+                                             sim={"particle_radius": R_PART}, surface={"grids": ()}))
+    params = solver_params(spec)
+    s = make_solver(spec, params, initial_state(spec, params))
+    data = s.snapshot()
+    assert data["density"].min() < 0.65 * 1000.0        # the corners' SPH density (0.61 of rest)
+    _f, mesh, _per, _spray = surface_frame(spec, data, frame_attrs(spec, params, 1, s, {}), 1)
+    poly = pv.PolyData.from_regular_faces(mesh.points, mesh.faces)
+    ratio = abs(poly.volume) / (len(data["position"]) * (2 * R_PART) ** 3)
+    reach = max(0.1 - mesh.points.min(), mesh.points.max() - 0.2) / R_PART
+    q = mesh.points
+    face = q[(np.abs(q[:, 0] - 0.15) < 0.01) & (np.abs(q[:, 2] - 0.15) < 0.01) & (q[:, 1] > 0.15), 1]
+    assert abs(ratio - 1) < 0.025 and reach < 0.65, (ratio, reach)
+    assert abs(face.mean() - 0.2) < 0.1 * R_PART, (face.mean() - 0.2) / R_PART
+
+
 def test_spray_is_the_isolated_particles():
     """A clump and a few scattered particles: the scattered ones (fewer than 25 neighbours within
     2h) are spray, in input order, and add nothing to the field; the clump is not spray."""
