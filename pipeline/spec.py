@@ -173,7 +173,7 @@ class Fluid(Strict):
     # Müller et al. 2003's particle-scale viscosity: wcsph's (default 1.0); kept for old job files
     viscosity: NonNeg | None = None
     surface_tension: NonNeg = 0.0     # N/m
-    color: Color = (0.25, 0.5, 0.85)
+    color: Color = (0.125, 0.4, 0.625)   # clear water's blue (the water look dims it)
     blocks: Annotated[tuple[Block, ...], Field(min_length=1)]
 
 

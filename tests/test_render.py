@@ -27,9 +27,11 @@ MEAN_TOL = 3.0
 OUTLIER_TOL = 0.01
 
 
-def scene(tmp_path, look: str = "preview", surface: dict | None = None, **render):
+def scene(tmp_path, look: str = "preview", surface: dict | None = None, color=None, **render):
     """The golden scene. With the preview look, its own background (as before looks existed);
-    with another look, the look's background, ground and material."""
+    with another look, the look's background, ground and material. The water look's fluid is the
+    preview's blue half way to clear water's: the color that look drew it in when its golden
+    was made (it took every fluid's color half way there itself then)."""
     base = {"look": look, "resolution": (320, 180), "ssaa": False, "movie": True, "contact_sheet": True,
             "camera": {"position": (1.2, 0.8, 1.3), "focal_point": (0.3, 0.15, 0.2), "fov": 40.0},
             "lights": ({"position": (2.0, 3.0, 2.0), "intensity": 1.0},
@@ -40,7 +42,7 @@ def scene(tmp_path, look: str = "preview", surface: dict | None = None, **render
     return ShotSpec.model_validate(tiny_spec(
         ((0, 0, 0), (0.2, 0.2, 0.2)), ((0, 0, 0), (0.6, 0.4, 0.4)), name="golden", surface=surface or {},
         shot={"frame_start": 1, "frame_end": 3, "output": str(tmp_path)},
-        fluid={"name": "water", "color": (0.2, 0.45, 0.85)},
+        fluid={"name": "water", "color": color or ((0.2, 0.45, 0.85) if look != "water" else (0.1, 0.375, 0.625))},
         colliders=({"type": "box", "min": (0.45, 0.0, 0.1), "max": (0.55, 0.1, 0.3)},), render=base))
 
 
@@ -139,6 +141,26 @@ def test_looks_golden(tmp_path, look, capfd):
         # 35 levels: inside the golden tolerance, so checked here)
         top = np.asarray(Image.open(paths.render_frame(2)).convert("RGB"), np.float64)[0]
         assert np.abs(top - top.mean(axis=0)).max() <= 2, "the ground ends inside the frame"
+
+
+def test_water_look_draws_each_fluid_in_its_own_color(tmp_path):
+    """The water look keeps a fluid's color (dimmed): the synthetic sphere as honey reads amber,
+    red over green over blue at its middle (measured 135, 119, 83), and as the example's water
+    blue. (Until 2026-11-26 the look took every color half way to clear water's: honey came out
+    olive grey, 109, 111, 100.)"""
+    from pipeline.stages import render
+
+    middle = {}
+    for name, color in (("honey", (0.85, 0.52, 0.1)), ("water", (0.11, 0.39, 0.61))):
+        spec = scene(tmp_path / name, look="water", color=color)
+        paths = synthetic_meshes(spec, [2])
+        render.run(spec, [2], paths, quiet())
+        img = np.asarray(Image.open(paths.render_frame(2)).convert("RGB"), np.float64)
+        middle[name] = img[92:98, 149:155].reshape(-1, 3).mean(axis=0)
+    r, g, b = middle["honey"]
+    assert r > g + 10 and g > b + 10, middle
+    r, g, b = middle["water"]
+    assert b > g > r, middle
 
 
 def test_sky_is_the_looks_colors_and_the_same_every_time():

@@ -40,12 +40,19 @@ class Stage:
 
 
 def _sim_sections(spec) -> dict[str, Any]:
+    """What the particles depend on. Fluids' and colliders' colors are the render's (a color
+    changed after the sim re-renders; until 2026-11-26 it made the whole sim stale)."""
     return {"shot": {"frame_start": spec.shot.frame_start, "fps": spec.shot.fps},
             "sim": spec.sim.model_dump(exclude={"backend", "threads"}),
             "domain": spec.domain.model_dump(),
-            "fluids": [f.model_dump() for f in spec.fluids],
-            "colliders": [c.model_dump() for c in spec.colliders],
+            "fluids": [f.model_dump(exclude={"color"}) for f in spec.fluids],
+            "colliders": [c.model_dump(exclude={"color"}) for c in spec.colliders],
             "meshes": spec.mesh_hashes()}
+
+
+def _render_sections(spec) -> dict[str, Any]:
+    return {"render": spec.render.model_dump(),
+            "colors": {"fluids": [f.color for f in spec.fluids], "colliders": [c.color for c in spec.colliders]}}
 
 
 def _surface_files(paths, frame: int) -> list:
@@ -62,7 +69,7 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
           hashed=lambda spec: {"surface": spec.surface.model_dump()}, format_version=3),   # 3: spray file
     Stage("render", "surface", "pipeline.stages.render", per_frame=True,
           frame_files=lambda paths, frame: [paths.render_frame(frame)],
-          hashed=lambda spec: {"render": spec.render.model_dump()}, format_version=1),
+          hashed=_render_sections, format_version=1),
 )}
 """The stages in the order they run; each one's upstream comes before it."""
 

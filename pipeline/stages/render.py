@@ -33,9 +33,11 @@ PNG_LEVEL = 3
 # translucent mesh out of the image altogether (measured), and plain alpha blending draws it;
 # with "absorption" (water, where the frame has a level set) each vertex is as opaque as the
 # water behind it is deep (Beer-Lambert, _water_alpha), in lengths of that share of the domain's
-# diagonal. "shadow": the contact shadow's strength under the fluid (ContactShadow). "body": the
-# water's base color (its color half way to "tint") times this, since water sends little of the
-# sky's diffuse light back: at 1 the example's water read as pale blue jelly. "lamps": the
+# diagonal. "shadow": the contact shadow's strength under the fluid (ContactShadow). "body": each
+# fluid's color times this, since a clear liquid sends little of the sky's diffuse light back: at
+# 1 the example's water read as pale blue jelly ("tint": clear water's color, which spray at rest
+# takes half way to white; a fluid's own color was taken half way to it until 2026-11-26, which
+# turned honey and oil olive grey). "lamps": the
 # default light rig's intensity, as a share (the sky lights the scene too). "solids": the
 # colliders' colors times this (under the sky a pale collider read flat white).
 LOOKS = {
@@ -260,9 +262,9 @@ class FrameRenderer:
             poly.point_data["motion"] = np.asarray(m.velocity, np.float32)
             color = look.get("color") or (spec.fluids[[f.name for f in spec.fluids].index(key)].color
                                           if key is not None else spec.fluids[0].color)
-            if "tint" in look:          # water: the fluid's color, half way to clear water's,
-                # as dim as the little light that water scatters back (look "body")
-                color = tuple(look["body"] * 0.5 * (a + b) for a, b in zip(color, look["tint"]))
+            if "body" in look:          # water: the fluid's color as dim as the little light
+                # that a clear liquid scatters back (look "body")
+                color = tuple(look["body"] * a for a in color)
             if look["shading"] in ("pbr", "ibl"):
                 kw = dict(pbr=True, metallic=look["metallic"], roughness=look["roughness"])
             else:
@@ -320,7 +322,7 @@ class FrameRenderer:
         water = ray_thickness(sdf, index_min, cell, points[front], ray[front], max_length=3 * depth,
                               min_step=depth / 32)
         # opacity at one absorption length is look["opacity"]: 1 - exp(-k) = opacity
-        k = -np.log(1 - look["opacity"])
+        k = -np.log(1 - min(look["opacity"], 0.999))     # an opaque material: 0.999, not inf (inf * 0 is nan)
         least = 0.5 * look["opacity"]
         alpha = np.zeros(len(points))
         alpha[front] = least + (1 - least) * (1 - np.exp(-k * water / depth))
