@@ -73,15 +73,19 @@ def write_mesh(final: Path, mesh: Mesh, fmt: str) -> Path:
     return final
 
 
-def write_points(final: Path, position: np.ndarray, velocity: np.ndarray, radius: float) -> Path:
-    """Publish particles as PLY points (binary): x y z, velocity vx vy vz and pscale (the
-    radius: Houdini's name for it; Blender reads the points and their attributes too)."""
+def write_points(final: Path, position: np.ndarray, velocity: np.ndarray, radius: float,
+                 fluid: np.ndarray | None = None) -> Path:
+    """Publish particles as PLY points (binary): x y z, velocity vx vy vz, pscale (the radius:
+    Houdini's name for it; Blender reads the points and their attributes too) and, given, fluid
+    (the index of each point's fluid in the job's `fluids`)."""
     import meshio
 
     n = len(position)
     cells = []                  # points only: one `vertex` element, no faces
     pd = {"vx": velocity[:, 0].astype(np.float32), "vy": velocity[:, 1].astype(np.float32),
           "vz": velocity[:, 2].astype(np.float32), "pscale": np.full(n, radius, np.float32)}
+    if fluid is not None:
+        pd["fluid"] = np.asarray(fluid, np.int32)
     with atomic_path(final) as tmp:
         meshio.write(str(tmp), meshio.Mesh(np.asarray(position, np.float32).reshape(-1, 3), cells, point_data=pd),
                      file_format="ply")
@@ -89,14 +93,16 @@ def write_points(final: Path, position: np.ndarray, velocity: np.ndarray, radius
 
 
 def read_points(path: Path) -> dict[str, np.ndarray]:
-    """{position, velocity, pscale} from a file write_points wrote."""
+    """{position, velocity, pscale, fluid} from a file write_points wrote (fluid 0 where the file
+    has none: written before 2026-11-26, or without it)."""
     import meshio
 
     m = meshio.read(str(path))
     pd = m.point_data
     return {"position": np.asarray(m.points, np.float32),
             "velocity": np.stack([pd["vx"], pd["vy"], pd["vz"]], 1) if len(m.points) else np.zeros((0, 3), np.float32),
-            "pscale": np.asarray(pd.get("pscale", np.zeros(len(m.points))), np.float32)}
+            "pscale": np.asarray(pd.get("pscale", np.zeros(len(m.points))), np.float32),
+            "fluid": np.asarray(pd.get("fluid", np.zeros(len(m.points))), np.int64)}
 
 
 def read_mesh(path: Path) -> Mesh:

@@ -268,18 +268,21 @@ def test_a_frame_is_the_same_drawn_first_or_after_another(tmp_path):
     assert np.array_equal(a, b)
 
 
-def test_spray_is_white_where_it_flies_and_pale_water_at_rest(tmp_path):
+def test_spray_is_white_where_it_flies_and_its_fluids_color_at_rest(tmp_path):
     """The water look's spray points: the spray color (white) at a quarter of the shot's
-    expected largest speed and above, half way between it and clear water's tint at rest (a
-    droplet left on a stone is a bead, not foam)."""
+    expected largest speed and above, half way between it and the point's own fluid's color at
+    rest (a droplet left on a stone is a bead, not foam; an oil droplet a golden one)."""
     from pipeline.formats import write_points
     from pipeline.stages import render
 
     spec = scene(tmp_path, look="water", surface={"spray": 25})
+    oil = {"name": "oil", "rest_density": 850.0, "color": (0.85, 0.62, 0.15),
+           "blocks": ({"min": (0.3, 0.0, 0.0), "max": (0.4, 0.1, 0.1)},)}
+    spec = ShotSpec.model_validate({**spec.model_dump(), "fluids": (spec.fluids[0].model_dump(), oil)})
     paths = synthetic_meshes(spec, [2])
     fast = 0.25 * spec.expected_max_speed()
-    velocity = np.array([[0, 0, 0], [fast, 0, 0], [0, -2 * fast, 0]], np.float32)
-    write_points(paths.surface_spray(2), np.full((3, 3), 0.3, np.float32), velocity, 0.004)
+    velocity = np.array([[0, 0, 0], [fast, 0, 0], [0, -2 * fast, 0], [0, 0, 0]], np.float32)
+    write_points(paths.surface_spray(2), np.full((4, 3), 0.3, np.float32), velocity, 0.004, np.array([0, 0, 1, 1]))
     fr = render.FrameRenderer(spec)
     try:
         clouds = [m for m, _kw in fr._fluid_meshes(2, paths) if m.n_faces == 0]
@@ -287,9 +290,11 @@ def test_spray_is_white_where_it_flies_and_pale_water_at_rest(tmp_path):
         fr.close()
     assert len(clouds) == 1
     rgb = clouds[0].point_data["rgb"] / 255.0
-    white, tint = np.asarray(fr.look["spray_color"]), np.asarray(fr.look["tint"])
-    np.testing.assert_allclose(rgb[0], 0.5 * (white + tint), atol=1 / 255)
-    np.testing.assert_allclose(rgb[1:], [white, white], atol=1 / 255)
+    white = np.asarray(fr.look["spray_color"])
+    water, oil = (np.asarray(f.color) for f in spec.fluids)
+    np.testing.assert_allclose(rgb[0], 0.5 * (white + water), atol=1 / 255)
+    np.testing.assert_allclose(rgb[3], 0.5 * (white + oil), atol=1 / 255)
+    np.testing.assert_allclose(rgb[1:3], [white, white], atol=1 / 255)
 
 
 def test_water_look_reflects_the_sky(tmp_path, monkeypatch):

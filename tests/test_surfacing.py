@@ -668,8 +668,9 @@ def test_spray_is_the_isolated_particles():
 
 def test_surface_stage_writes_the_spray_as_points(tmp_path):
     """The surface stage on a sim frame of a clump and three stray particles: the frame's spray
-    file holds exactly the strays, with their velocities and the particle radius (pscale), is
-    one of the frame's files (the cache checks it with the others) and the mesh is the clump's."""
+    file holds exactly the strays, with their velocities, the particle radius (pscale) and their
+    fluid's index, is one of the frame's files (the cache checks it with the others) and the
+    mesh is the clump's."""
     from pipeline.cache import ShotPaths
     from pipeline.formats import read_mesh, read_points, write_frame
     from pipeline.spec import ShotSpec
@@ -694,6 +695,9 @@ def test_surface_stage_writes_the_spray_as_points(tmp_path):
     order = np.argsort(spray["position"][:, 0] + spray["position"][:, 1])
     np.testing.assert_array_equal(spray["position"][order], stray[[2, 0, 1]])
     np.testing.assert_array_equal(spray["velocity"][order], vel[-3:][[2, 0, 1]])
+    import meshio
+    assert "fluid" in meshio.read(str(paths.surface_spray(4))).point_data      # each point's fluid index
+    np.testing.assert_array_equal(spray["fluid"], 0)
     assert (spray["pscale"] == np.float32(R_PART)).all()
     mesh = read_mesh(paths.surface_meshes(4)[None])
     assert mesh.points.max() < 0.2

@@ -35,16 +35,15 @@ PNG_LEVEL = 3
 # water behind it is deep (Beer-Lambert, _water_alpha), in lengths of that share of the domain's
 # diagonal. "shadow": the contact shadow's strength under the fluid (ContactShadow). "body": each
 # fluid's color times this, since a clear liquid sends little of the sky's diffuse light back: at
-# 1 the example's water read as pale blue jelly ("tint": clear water's color, which spray at rest
-# takes half way to white; a fluid's own color was taken half way to it until 2026-11-26, which
-# turned honey and oil olive grey). "lamps": the
+# 1 the example's water read as pale blue jelly (until 2026-11-26 a fluid's color was also taken
+# half way to clear water's, 0, 0.3, 0.4, which turned honey and oil olive grey). "lamps": the
 # default light rig's intensity, as a share (the sky lights the scene too). "solids": the
 # colliders' colors times this (under the sky a pale collider read flat white).
 LOOKS = {
     "water": {"background": (0.66, 0.73, 0.80), "background_top": (0.52, 0.63, 0.77), "domain": False,
               "ground_color": (0.50, 0.52, 0.54), "ground_size": 30.0, "shading": "ibl", "opacity": 0.55,
               "roughness": 0.05, "metallic": 0.0,
-              "tint": (0.0, 0.30, 0.40), "body": 0.35, "lamps": 0.6, "solids": 0.55,
+              "body": 0.35, "lamps": 0.6, "solids": 0.55,
               "spray_color": (0.93, 0.97, 1.0), "shadow": 0.45, "absorption": 0.15},
     "clay": {"background": (0.55, 0.55, 0.56), "background_top": (0.45, 0.46, 0.48), "domain": False,
              "ground_color": (0.42, 0.42, 0.43), "ground_size": 30.0, "shading": "phong", "opacity": 1.0,
@@ -289,12 +288,15 @@ class FrameRenderer:
                 cloud = pv.PolyData(pts)
                 cloud.point_data["motion"] = points["velocity"]
                 kw = dict(color=look["spray_color"])
-                if "tint" in look:      # white where it flies (aerated spray), a pale water color
-                    # where it has come to rest (a droplet left on a stone is a bead, not foam)
+                if "body" in look:      # water: white where it flies (aerated spray), its fluid's
+                    # color half way to white where it has come to rest (a droplet left on a stone
+                    # is a bead, not foam)
                     fast = np.clip(np.linalg.norm(points["velocity"], axis=1) / (0.25 * spec.expected_max_speed()),
                                    0.0, 1.0)[:, None]
                     white = np.asarray(look["spray_color"])
-                    rgb = (1 - fast) * 0.5 * (np.asarray(look["tint"]) + white) + fast * white
+                    own = np.array([f.color for f in spec.fluids], np.float64)[
+                        np.clip(points["fluid"], 0, len(spec.fluids) - 1)]
+                    rgb = (1 - fast) * 0.5 * (own + white) + fast * white
                     cloud.point_data["rgb"] = np.round(255 * rgb).astype(np.uint8)
                     kw = dict(scalars="rgb", rgb=True)
                 out.append((cloud, dict(render_points_as_spheres=True, point_size=size, ambient=0.5, **kw)))

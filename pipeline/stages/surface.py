@@ -95,5 +95,6 @@ def _write_frame(spec, frame: int, paths) -> list:
         written.append(write_mesh(path, mesh if key is None else per_fluid[key], spec.surface.format))
     if paths.spray:
         written.append(write_points(paths.surface_spray(frame), data["position"][spray], data["velocity"][spray],
-                                    float(attrs.get("particle_radius", spec.sim.particle_radius))))
+                                    float(attrs.get("particle_radius", spec.sim.particle_radius)),
+                                    data["fluid"][spray]))
     return written
