@@ -48,11 +48,11 @@ def reconstruct(positions, velocities, volumes, params: SurfaceParams) -> tuple[
 def particle_volumes(data: dict, attrs: dict) -> np.ndarray:
     """V_j = m_j / max(rho_j, rho0_j) from the sim frame; (2r)^3 where the density is missing
     or zero. The SPH density of a particle at a free surface is short of the fluid beyond it
-    (0.85 of rest on a flat face of the fill lattice, 0.7 on an edge, 0.55 at a corner), not
-    spread out, so below rest it is read as rest: with m / rho a block's faces, edges and
-    corners swelled in turn (the two-fluid example's first frame: mesh 1.6 % over its
-    particles' volume, corners standing out as knobs; with the rest density 0.0 %). A frame
-    written before the rest densities were in its attributes keeps m / rho."""
+    (DFSPH's on the fill lattice: 0.85 of rest on a face, 0.72 on an edge, 0.61 at a corner),
+    which says nothing of its own volume, so below rest it is read as rest: with m / rho a
+    block's faces, edges and corners swelled in turn (the two-fluid example's first frame: mesh
+    1.6 % over its particles' volume, corners standing out as knobs; with the rest density
+    0.0 %). A frame written before the rest densities were in its attributes keeps m / rho."""
     r = float(attrs["particle_radius"])
     lattice = (2 * r) ** 3
     if "fluid_mass" not in attrs or "density" not in data:
