@@ -297,6 +297,28 @@ def test_spray_is_white_where_it_flies_and_its_fluids_color_at_rest(tmp_path):
     np.testing.assert_allclose(rgb[1:3], [white, white], atol=1 / 255)
 
 
+@pytest.mark.parametrize("opacity", [None, 1.0])
+def test_the_water_look_reads_the_depth_only_for_a_translucent_fluid(tmp_path, monkeypatch, opacity):
+    """With the look's own translucency the water's depth behind each vertex sets its opacity
+    (the frame's level set is read); a job's opaque `material` (opacity 1) is drawn opaque, with
+    no level set read (its depth alpha was 1 - exp(-inf * depth): nan where the depth was 0)."""
+    from pipeline.stages import render
+
+    spec = scene(tmp_path, look="water", **({"material": {"opacity": opacity}} if opacity else {}))
+    paths = synthetic_meshes(spec, [2])
+    paths.surface_vdb(2).write_bytes(b"")         # the frame has a .vdb
+    read = []
+    monkeypatch.setattr(render, "read_level_set", lambda path: read.append(path))    # (None: no level set)
+    fr = render.FrameRenderer(spec)
+    try:
+        kw = [kw for m, kw in fr._fluid_meshes(2, paths) if m.n_faces > 0][0]
+    finally:
+        fr.close()
+    assert read == ([] if opacity == 1.0 else [paths.surface_vdb(2)])
+    if opacity == 1.0:
+        assert kw["opacity"] == 1.0 and "scalars" not in kw
+
+
 def test_water_look_reflects_the_sky(tmp_path, monkeypatch):
     """The water look lights the fluid with the sky as well as the lamps: without the
     environment, the sphere's pixels change (its reflection and Fresnel rim go: measured 1,298

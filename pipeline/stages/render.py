@@ -249,7 +249,8 @@ class FrameRenderer:
 
         look = self.look
         level_set = None
-        if look.get("absorption") and paths.vdb and paths.surface_vdb(frame).exists():
+        translucent = look.get("absorption") and look["opacity"] is not None and look["opacity"] < 1.0
+        if translucent and paths.vdb and paths.surface_vdb(frame).exists():     # (an opaque material: none)
             level_set = read_level_set(paths.surface_vdb(frame))
         for key, path in paths.surface_meshes(frame).items():
             m = read_mesh(path)
@@ -324,7 +325,7 @@ class FrameRenderer:
         water = ray_thickness(sdf, index_min, cell, points[front], ray[front], max_length=3 * depth,
                               min_step=depth / 32)
         # opacity at one absorption length is look["opacity"]: 1 - exp(-k) = opacity
-        k = -np.log(1 - min(look["opacity"], 0.999))     # an opaque material: 0.999, not inf (inf * 0 is nan)
+        k = -np.log(1 - look["opacity"])
         least = 0.5 * look["opacity"]
         alpha = np.zeros(len(points))
         alpha[front] = least + (1 - least) * (1 - np.exp(-k * water / depth))
