@@ -8,6 +8,8 @@ This is the only module that knows where files live. Layout of one shot version:
         checkpoints/<name>.ckpt.0010.h5   full solver state to resume from
         surface/<name>.0001.vdb           level set `surface`, fog `density`, vector `velocity`
         surface/<name>.0001.ply           mesh (or .<fluid>.0001.ply per fluid; .obj/.vtu on request)
+        surface/<name>.0001.spray.ply     spray particles as points (surface.spray > 0)
+        surface/<name>.0001.spray.vdb     the same as an OpenVDB PointDataGrid (and surface.grids set)
         render/<name>.0001.png            image
         render/<name>.mp4, render/<name>.contact.png
 
@@ -213,6 +215,10 @@ class ShotPaths:
         """The frame's spray particles: PLY points with velocity and pscale (radius)."""
         return self.root / "surface" / f"{self.name}.{frame:04d}.spray.ply"
 
+    def surface_spray_vdb(self, frame: int) -> Path:
+        """The frame's spray particles as an OpenVDB PointDataGrid `spray`."""
+        return self.root / "surface" / f"{self.name}.{frame:04d}.spray.vdb"
+
     def surface_meshes(self, frame: int) -> dict[str | None, Path]:
         """Mesh files of a frame: {None: all fluids} or {fluid name: mesh} when per_fluid."""
         d = self.root / "surface"
@@ -250,7 +256,8 @@ class ShotPaths:
         if stage != "surface":
             return []
         current = set(self.frame_files(stage, frame))
-        d, others = self.root / "surface", [self.surface_vdb(frame), self.surface_spray(frame)]
+        d = self.root / "surface"
+        others = [self.surface_vdb(frame), self.surface_spray(frame), self.surface_spray_vdb(frame)]
         for ext in ("ply", "obj", "vtu"):
             others.append(d / f"{self.name}.{frame:04d}.{ext}")
             others += [d / f"{self.name}.{f}.{frame:04d}.{ext}" for f in self.fluids]

@@ -7,13 +7,19 @@
   state (half-step velocity, last acceleration, particle order) and its time-step controller.
 - Surface meshes: PLY keeps normals (nx, ny, nz) and velocity (vx, vy, vz) as vertex
   properties; OBJ keeps normals; VTU keeps both as point arrays.
-- OpenVDB files: the grids surfacing.vdb builds.
+- OpenVDB files: the grids surfacing.vdb builds; spray as a PointDataGrid `spray` (attributes
+  P, v, pscale, fluid), written by the sphshot-vdb-points tool that scripts/setup.sh builds from
+  pipeline/native/vdb_points.cpp (pyopenvdb 10 has no point grids).
 
 Every writer publishes atomically (cache.atomic_path): a file exists under its final name only
 once it is complete. The user's input meshes (mesh colliders) are read by pipeline/meshes.py.
 """
 from __future__ import annotations
 
+import json
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import h5py
@@ -138,6 +144,53 @@ def write_vdb(final: Path, grids) -> Path:
         if sorted(names) != sorted(g.name for g in grids):
             raise OSError(f"{final}: the OpenVDB file written holds {names}, not {[g.name for g in grids]}")
     return final
+
+
+VDB_POINTS_TOOL = "sphshot-vdb-points"
+
+
+def vdb_points_tool() -> Path | None:
+    """The sphshot-vdb-points executable: beside this interpreter (the venv setup.sh made), else
+    on PATH; None if there is none."""
+    here = Path(sys.prefix) / "bin" / VDB_POINTS_TOOL
+    if here.is_file():
+        return here
+    found = shutil.which(VDB_POINTS_TOOL)
+    return Path(found) if found else None
+
+
+def _run_vdb_points(*args: str, data: bytes | None = None) -> str:
+    tool = vdb_points_tool()
+    if tool is None:
+        raise OSError(f"{VDB_POINTS_TOOL} not found (scripts/setup.sh builds it; it needs g++ and libopenvdb-dev)")
+    proc = subprocess.run([str(tool), *args], input=data, capture_output=True)
+    if proc.returncode != 0:
+        lines = proc.stderr.decode(errors="replace").strip().splitlines()
+        raise OSError(lines[-1] if lines else f"{VDB_POINTS_TOOL} exited {proc.returncode}")
+    return proc.stdout.decode()
+
+
+def write_vdb_points(final: Path, position: np.ndarray, velocity: np.ndarray, radius: float,
+                     fluid: np.ndarray) -> Path:
+    """Publish particles as an OpenVDB PointDataGrid named `spray`: P, v (velocity), pscale (the
+    radius) and fluid, the names Houdini and Blender read. The file is read back (point count and
+    sums) before it is published."""
+    n = len(position)
+    arrays = (np.asarray(position, "<f4").reshape(n, 3), np.asarray(velocity, "<f4").reshape(n, 3),
+              np.full(n, radius, "<f4"), np.asarray(fluid, "<i4").reshape(n))
+    data = np.uint64(n).astype("<u8").tobytes() + b"".join(a.tobytes() for a in arrays)
+    with atomic_path(final) as tmp:
+        _run_vdb_points("write", "-", str(tmp), data=data)
+        back = read_vdb_points(tmp)
+        if back["count"] != n or abs(back["fluid_sum"] - float(arrays[3].sum())) > 0.5:
+            raise OSError(f"{final}: the points written read back as {back['count']}, not {n}")
+    return final
+
+
+def read_vdb_points(path: Path) -> dict:
+    """A summary of the `spray` PointDataGrid of a .vdb (through sphshot-vdb-points): count, and
+    position_sum, velocity_sum, position_min, position_max, pscale_sum, fluid_sum."""
+    return json.loads(_run_vdb_points("read", str(path)))
 
 
 def read_level_set(path: Path, name: str = "surface") -> tuple[np.ndarray, tuple[int, int, int], float] | None:

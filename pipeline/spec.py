@@ -237,8 +237,9 @@ class Surface(Strict):
     # color-field iso value; unset: the method's (ISO), where a resting block's mesh keeps its volume
     iso: Annotated[float | None, Field(gt=0, lt=1)] = None
     # particles with fewer neighbours than this within two kernel radii (itself counted) are spray:
-    # written as points (<shot>.<frame>.spray.ply), left out of the mesh; 0: no spray file. The
-    # default is the anisotropic kernels' N_EPS: fewer than that have no shape to stretch
+    # written as points (<shot>.<frame>.spray.ply, and .spray.vdb with grids), left out of the mesh;
+    # 0: no spray file. The default is the anisotropic kernels' N_EPS: fewer than that have no
+    # shape to stretch
     spray: Annotated[int, Field(ge=0, le=1000)] = 25
     # anisotropic: Laplacian smoothing of the kernel centres (Yu & Turk's lambda, 0.9 in the paper),
     # then Taubin's second pass pushing them back out by center_inflation of their own Laplacian

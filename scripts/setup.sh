@@ -6,8 +6,9 @@ set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
 # 1. System packages: Python venv support, OpenVDB's Python module, Mesa EGL/OSMesa for
-#    off-screen rendering with no display and no GPU.
-APT_PKGS="python3-venv python3-openvdb libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6"
+#    off-screen rendering with no display and no GPU, and OpenVDB's C++ headers with a compiler
+#    for the one thing pyopenvdb cannot write, spray as VDB points (step 4).
+APT_PKGS="python3-venv python3-openvdb libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 g++ libopenvdb-dev libboost-dev"
 missing=""
 for p in $APT_PKGS; do dpkg -s "$p" >/dev/null 2>&1 || missing="$missing $p"; done
 if [ -n "$missing" ]; then
@@ -40,7 +41,20 @@ so=$(ls /usr/lib/python3/dist-packages/pyopenvdb*.so 2>/dev/null | head -n1 || t
 if [ -z "$so" ]; then echo "setup: python3-openvdb installed but pyopenvdb*.so not found" >&2; exit 1; fi
 ln -sf "$so" "$site/$(basename "$so")"
 
-# 4. Check that the pieces import together (NumPy 1.x next to pyopenvdb).
+# 4. sphshot-vdb-points (pipeline/native/vdb_points.cpp): the surface stage's spray as an OpenVDB
+#    PointDataGrid. Built into the venv, again whenever its source changes (about 40 s).
+tool="$VENV/bin/sphshot-vdb-points"
+src=pipeline/native/vdb_points.cpp
+tool_stamp="$VENV/.sphshot-vdb-points-$(sha256sum "$src" | cut -c1-16)"
+if [ ! -x "$tool" ] || [ ! -e "$tool_stamp" ]; then
+  echo "setup: building $tool"
+  g++ -O2 -std=c++17 "$src" -o "$tool.tmp" -lopenvdb -ltbb
+  mv "$tool.tmp" "$tool"
+  rm -f "$VENV"/.sphshot-vdb-points-*
+  touch "$tool_stamp"
+fi
+
+# 5. Check that the pieces import together (NumPy 1.x next to pyopenvdb).
 "$VENV/bin/python" - <<'PY'
 import numpy, pyopenvdb, taichi, h5py, pyvista, meshio, skimage  # noqa: F401
 assert numpy.__version__.startswith("1."), f"expected NumPy 1.x next to pyopenvdb, got {numpy.__version__}"

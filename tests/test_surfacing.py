@@ -701,6 +701,85 @@ def test_surface_stage_writes_the_spray_as_points(tmp_path):
     assert (spray["pscale"] == np.float32(R_PART)).all()
     mesh = read_mesh(paths.surface_meshes(4)[None])
     assert mesh.points.max() < 0.2
+    assert not paths.surface_spray_vdb(4).exists()        # no grids asked for: no VDB points either
+
+
+def test_surface_stage_writes_the_spray_as_vdb_points_too(tmp_path):
+    """With grids (the default) the spray also goes to surface/<name>.0004.spray.vdb, an OpenVDB
+    PointDataGrid `spray` (P, v, pscale, fluid) that pyopenvdb cannot write, through
+    sphshot-vdb-points: the same points as the PLY (count, sums and extremes read back from the
+    file within float32 round-off, 1e-6 m), a file of the frame the cache checks."""
+    from pipeline.cache import ShotPaths
+    from pipeline.formats import read_vdb_points, write_frame
+    from pipeline.spec import ShotSpec
+    from pipeline.stages import STAGES
+    from pipeline.stages.surface import _write_frame
+
+    spec = ShotSpec.model_validate({**tiny_spec(sim={"particle_radius": R_PART}, shot={"output": str(tmp_path)}),
+                                    "fluids": ({"name": "a", "blocks": ({"min": (0.1, 0.1, 0.1), "max": (0.16, 0.16, 0.16)},)},
+                                               {"name": "b", "blocks": ({"min": (0.3, 0.3, 0.3), "max": (0.31, 0.31, 0.31)},)})})
+    clump = lattice_block((0.1, 0.1, 0.1), (0.16, 0.16, 0.16))
+    stray = np.array([[0.3, 0.3, 0.3], [0.3, 0.32, 0.3], [0.02, 0.25, 0.05]], np.float32)
+    pos = np.concatenate([clump, stray])
+    vel = np.zeros_like(pos)
+    vel[-3:] = [[1.0, 2.0, 3.0], [0.0, -1.0, 0.0], [0.5, 0.0, 0.0]]
+    fluid = np.zeros(len(pos), int)
+    fluid[-2:] = 1
+    n = len(pos)
+    paths = ShotPaths.for_spec(spec)
+    write_frame(paths.sim_frame(4), {"position": pos, "velocity": vel, "density": np.full(n, 1000.0),
+                                     "pressure": np.zeros(n), "id": np.arange(n), "fluid": fluid},
+                {"frame": 4, "time": 0.1, "particle_radius": R_PART})
+    written = _write_frame(spec, 4, paths)
+    target = paths.surface_spray_vdb(4)
+    assert target in written and target in STAGES["surface"].frame_files(paths, 4)
+    got = read_vdb_points(target)
+    assert got["count"] == 3
+    np.testing.assert_allclose(got["position_sum"], stray.astype(float).sum(0), atol=1e-6)
+    np.testing.assert_allclose(got["position_min"], stray.min(0), atol=1e-6)
+    np.testing.assert_allclose(got["position_max"], stray.max(0), atol=1e-6)
+    np.testing.assert_allclose(got["velocity_sum"], vel[-3:].sum(0), atol=1e-6)
+    assert got["pscale_sum"] == pytest.approx(3 * R_PART, rel=1e-6)
+    assert got["fluid_sum"] == 2
+
+
+def test_vdb_points_round_trip_and_no_points():
+    """write_vdb_points publishes what read_vdb_points reads back (500 random points, two
+    fluids); a frame without spray gives a valid file with an empty grid."""
+    import tempfile
+    from pathlib import Path
+
+    from pipeline.formats import read_vdb_points, write_vdb_points
+
+    rng = np.random.default_rng(3)
+    pos = rng.uniform(-1, 2, (500, 3)).astype(np.float32)
+    vel = rng.normal(0, 2, (500, 3)).astype(np.float32)
+    fluid = rng.integers(0, 2, 500)
+    with tempfile.TemporaryDirectory() as d:
+        path = write_vdb_points(Path(d) / "a.spray.vdb", pos, vel, 0.004, fluid)
+        got = read_vdb_points(path)
+        assert got["count"] == 500 and got["fluid_sum"] == fluid.sum()
+        np.testing.assert_allclose(got["position_sum"], pos.astype(float).sum(0), atol=1e-4)   # 500 float32s
+        np.testing.assert_allclose(got["velocity_sum"], vel.astype(float).sum(0), atol=1e-4)
+        assert got["pscale_sum"] == pytest.approx(500 * 0.004, rel=1e-6)
+        empty = write_vdb_points(Path(d) / "b.spray.vdb", np.zeros((0, 3)), np.zeros((0, 3)), 0.004, np.zeros(0))
+        assert read_vdb_points(empty)["count"] == 0
+        assert sorted(p.name for p in Path(d).iterdir()) == ["a.spray.vdb", "b.spray.vdb"]    # no temporaries
+
+
+def test_spray_vdb_without_its_tool_is_one_clear_error(tmp_path, monkeypatch):
+    """Where sphshot-vdb-points was not built, a surface stage that would write VDB points stops
+    before any frame with one line naming the keys and the way out."""
+    from pipeline.cache import ShotPaths
+    from pipeline.errors import StageError
+    from pipeline.spec import ShotSpec
+    from pipeline.stages import surface
+
+    spec = ShotSpec.model_validate(tiny_spec(shot={"output": str(tmp_path)}))
+    monkeypatch.setattr(surface, "vdb_points_tool", lambda: None)
+    with pytest.raises(StageError, match=r"surface\.spray and surface\.grids: .*scripts/setup\.sh.*surface\.spray = 0"):
+        surface.run(spec, [1], ShotPaths.for_spec(spec), None)
+    assert not (tmp_path / "t").exists() or not any((tmp_path / "t").rglob("*.vdb"))
 
 
 @pytest.mark.parametrize("anisotropic", [False, True])

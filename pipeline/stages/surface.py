@@ -1,4 +1,5 @@
-"""The surface stage: one .vdb and one mesh (or one per fluid) per sim frame.
+"""The surface stage: one .vdb and one mesh (or one per fluid) per sim frame, and the spray as
+points (PLY, and VDB points beside the .vdb).
 
 The spec becomes surfacing's parameters here (surface_params), and the surfacer's errors
 become one-line stage errors.
@@ -16,7 +17,7 @@ from surfacing.mesh import Mesh
 from surfacing.reconstruct import SurfaceParams, particle_volumes, reconstruct
 
 from ..errors import StageError
-from ..formats import read_frame, write_mesh, write_points, write_vdb
+from ..formats import read_frame, vdb_points_tool, write_mesh, write_points, write_vdb, write_vdb_points
 
 log = logging.getLogger("sphshot")
 
@@ -64,6 +65,10 @@ def surface_frame(spec, data: dict, attrs: dict, frame: int):
 
 
 def run(spec, frames, paths, progress) -> None:
+    if paths.spray and paths.vdb and vdb_points_tool() is None:
+        raise StageError("surface.spray and surface.grids: the spray's VDB points need sphshot-vdb-points, "
+                         "which scripts/setup.sh builds (g++, libopenvdb-dev); run it, or set surface.grids = [] "
+                         "or surface.spray = 0")
     try:
         init_taichi(spec.sim.backend, spec.sim.threads)
     except BackendUnavailable as exc:
@@ -94,7 +99,9 @@ def _write_frame(spec, frame: int, paths) -> list:
     for key, path in paths.surface_meshes(frame).items():
         written.append(write_mesh(path, mesh if key is None else per_fluid[key], spec.surface.format))
     if paths.spray:
-        written.append(write_points(paths.surface_spray(frame), data["position"][spray], data["velocity"][spray],
-                                    float(attrs.get("particle_radius", spec.sim.particle_radius)),
-                                    data["fluid"][spray]))
+        points = (data["position"][spray], data["velocity"][spray],
+                  float(attrs.get("particle_radius", spec.sim.particle_radius)), data["fluid"][spray])
+        written.append(write_points(paths.surface_spray(frame), *points))
+        if paths.vdb:
+            written.append(write_vdb_points(paths.surface_spray_vdb(frame), *points))
     return written
