@@ -183,7 +183,8 @@ def write_vdb_points(final: Path, position: np.ndarray, velocity: np.ndarray, ra
         _run_vdb_points("write", "-", str(tmp), data=data)
         back = read_vdb_points(tmp)
         if back["count"] != n or abs(back["fluid_sum"] - float(arrays[3].sum())) > 0.5:
-            raise OSError(f"{final}: the points written read back as {back['count']}, not {n}")
+            raise OSError(f"{final}: the points written read back as {back['count']} (fluid indices summing to "
+                          f"{back['fluid_sum']:g}), not {n} ({int(arrays[3].sum())})")
     return final
 
 

@@ -97,6 +97,10 @@ def _run(spec: ShotSpec, shot: ShotCache, stages: list[str], frames: list[int], 
     for plan in plans:
         if not plan.todo:
             progress.line(f"sphshot: {plan.name}: all {len(frames)} frame(s) valid, nothing to do")
+    for plan in plans:                          # a stage that cannot run here stops the run before it starts
+        ready = STAGES[plan.name].ready
+        if plan.todo and ready is not None:
+            ready(spec, shot.paths)
     since = time.time() if force else None     # with --force only files newer than this count
     progress.begin({p.name: len(p.todo) for p in plans})
     try:

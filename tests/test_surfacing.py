@@ -768,18 +768,26 @@ def test_vdb_points_round_trip_and_no_points():
 
 
 def test_spray_vdb_without_its_tool_is_one_clear_error(tmp_path, monkeypatch):
-    """Where sphshot-vdb-points was not built, a surface stage that would write VDB points stops
-    before any frame with one line naming the keys and the way out."""
+    """Where sphshot-vdb-points was not built, a run that would write VDB points stops before
+    any stage starts (the sim included: nothing is written, no version folder is left) with one
+    line naming the keys and the way out; so does the surface stage called on its own."""
     from pipeline.cache import ShotPaths
     from pipeline.errors import StageError
+    from pipeline.runner import run_stages
     from pipeline.spec import ShotSpec
     from pipeline.stages import surface
 
-    spec = ShotSpec.model_validate(tiny_spec(shot={"output": str(tmp_path)}))
+    spec = ShotSpec.model_validate(tiny_spec(shot={"output": str(tmp_path), "frame_end": 2}))
     monkeypatch.setattr(surface, "vdb_points_tool", lambda: None)
-    with pytest.raises(StageError, match=r"surface\.spray and surface\.grids: .*scripts/setup\.sh.*surface\.spray = 0"):
+    line = r"surface\.spray and surface\.grids: .*scripts/setup\.sh.*surface\.spray = 0"
+    with pytest.raises(StageError, match=line):
+        run_stages(spec, ["sim", "surface"], spec.frames)
+    assert [p for p in tmp_path.rglob("*") if not p.is_dir()] == []
+    assert not ShotPaths.for_spec(spec).root.exists()
+    with pytest.raises(StageError, match=line):
         surface.run(spec, [1], ShotPaths.for_spec(spec), None)
-    assert not (tmp_path / "t").exists() or not any((tmp_path / "t").rglob("*.vdb"))
+    ok = ShotSpec.model_validate(tiny_spec(shot={"output": str(tmp_path)}, surface={"grids": ()}))
+    surface.ready(ok, ShotPaths.for_spec(ok))            # no VDB asked for: the tool is not needed
 
 
 @pytest.mark.parametrize("anisotropic", [False, True])

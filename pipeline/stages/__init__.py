@@ -3,7 +3,9 @@
 A stage's module holds ``run(spec, frames, paths, progress)``, which reads the upstream stage's
 per-frame files through `paths`, publishes its own files atomically and calls
 ``progress.frame_done(frame, files)`` once per finished frame, and optionally
-``finalize(spec, paths, force)`` (movie, contact sheet) once every frame of the shot is valid.
+``ready(spec, paths)``, which raises StageError where the stage could not run here (checked
+before any stage of a run starts), and ``finalize(spec, paths, force)`` (movie, contact sheet)
+once every frame of the shot is valid.
 Per-frame stages (surface, render) can be handed any subset of frames in any chunking, which
 is what the executors do; the sim is sequential and always runs as one task.
 
@@ -32,6 +34,11 @@ class Stage:
     @property
     def run(self) -> Callable:
         return self._mod().run
+
+    @property
+    def ready(self) -> Callable | None:
+        """Optional check that the stage can run on this machine, before anything runs."""
+        return getattr(self._mod(), "ready", None)
 
     @property
     def finalize(self) -> Callable | None:

@@ -64,11 +64,16 @@ def surface_frame(spec, data: dict, attrs: dict, frame: int):
     return field, mesh, per_fluid, spray
 
 
-def run(spec, frames, paths, progress) -> None:
+def ready(spec, paths) -> None:
+    """The spray's VDB points need the sphshot-vdb-points tool (scripts/setup.sh builds it)."""
     if paths.spray and paths.vdb and vdb_points_tool() is None:
         raise StageError("surface.spray and surface.grids: the spray's VDB points need sphshot-vdb-points, "
                          "which scripts/setup.sh builds (g++, libopenvdb-dev); run it, or set surface.grids = [] "
                          "or surface.spray = 0")
+
+
+def run(spec, frames, paths, progress) -> None:
+    ready(spec, paths)
     try:
         init_taichi(spec.sim.backend, spec.sim.threads)
     except BackendUnavailable as exc:
