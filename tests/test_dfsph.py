@@ -173,11 +173,10 @@ def two_layers(heavy_below: bool, viscosity: float = 1.0) -> dict:
 def test_oil_on_water_stays_layered_and_still():
     """Oil (800 kg/m^3) resting on water, settled 0.5 s and left alone 1 s more: under 1 % of
     either fluid lies beyond two radii of the interface (the issue's bound; measured 0 %), and
-    the rms speed is under 1 cm/s. (The issue asks for 5 mm/s, not met: measured 6.0-7.8 mm/s
-    at 1.5 s in three runs. The noise is made every step, not left from the start: with Pa s
-    viscosities, damped still and released it is back at 8-13 mm/s within 0.25 s; ten times
-    tighter bounds on both solves leave it at 5-8 mm/s. bench/resting.py, bench/RESULTS.md,
-    fifteenth session.)"""
+    the rms speed is under 1 cm/s. (The issue asks for 5 mm/s: at the default density bound,
+    0.1 %, not met: measured 7.5 mm/s at 1.5 s, 8.5-9.2 at 2-2.5 s. The noise is made every step,
+    not left from the start: with Pa s viscosities, damped still and released it is back at 8-13
+    mm/s within 0.25 s. A tighter bound meets it: the next test.)"""
     spec, _params, s = dfsph(two_layers(True))
     s.advance_to(1.5)
     d = s.snapshot()
@@ -187,6 +186,26 @@ def test_oil_on_water_stays_layered_and_still():
     assert oil_sunk < 0.01 and water_up < 0.01, (oil_sunk, water_up)
     rms = float(np.sqrt((d["velocity"] ** 2).sum(axis=1).mean()))
     assert rms < 0.01, f"rms speed {rms * 1000:.1f} mm/s"
+
+
+def test_oil_on_water_comes_to_rest_with_a_tighter_density_bound():
+    """The same layers with sim.max_density_error = 0.05 %: settled 1 s from the fill and left
+    alone 1 s more, the rms speed is under the issue's 5 mm/s and still falling (measured 3.5 mm/s
+    at 2 s, 1.7 at 2.5 s, against 8.5 and 9.2 at the default 0.1 %; 10 density sweeps a step at
+    rest instead of 5.7), and the layers stay sharp. The noise at rest is what the density
+    solve's mean error leaves in the velocities each step (about eps h / dt), so it follows the
+    bound (bench/RESULTS.md, twenty-first session)."""
+    job = two_layers(True)
+    job["sim"]["max_density_error"] = 0.0005
+    spec, _params, s = dfsph(job)
+    s.advance_to(2.0)
+    d = s.snapshot()
+    y, f = d["position"][:, 1], d["fluid"]
+    oil_sunk = ((f == 1) & (y < 0.1 - 0.02)).sum() / (f == 1).sum()
+    water_up = ((f == 0) & (y > 0.1 + 0.02)).sum() / (f == 0).sum()
+    assert oil_sunk < 0.01 and water_up < 0.01, (oil_sunk, water_up)
+    rms = float(np.sqrt((d["velocity"] ** 2).sum(axis=1).mean()))
+    assert rms < 0.005, f"rms speed {rms * 1000:.1f} mm/s"
 
 
 def test_a_water_blob_sinks_through_oil():
