@@ -170,6 +170,16 @@ def two_layers(heavy_below: bool, viscosity: float = 1.0) -> dict:
                        {**upper, "blocks": ({"min": (0, 0.1, 0), "max": (0.2, 0.2, 0.1)},)})}
 
 
+def layering(s) -> tuple[float, float, float]:
+    """For two_layers(True) now: the shares of oil more than two radii below the interface and of
+    water more than two radii above it, and the rms speed (m/s)."""
+    d = s.snapshot()
+    y, f = d["position"][:, 1], d["fluid"]
+    oil_sunk = ((f == 1) & (y < 0.1 - 0.02)).sum() / (f == 1).sum()
+    water_up = ((f == 0) & (y > 0.1 + 0.02)).sum() / (f == 0).sum()
+    return oil_sunk, water_up, float(np.sqrt((d["velocity"] ** 2).sum(axis=1).mean()))
+
+
 def test_oil_on_water_stays_layered_and_still():
     """Oil (800 kg/m^3) resting on water, settled 0.5 s and left alone 1 s more: under 1 % of
     either fluid lies beyond two radii of the interface (the issue's bound; measured 0 %), and
@@ -179,12 +189,8 @@ def test_oil_on_water_stays_layered_and_still():
     mm/s within 0.25 s. A tighter bound meets it: the next test.)"""
     spec, _params, s = dfsph(two_layers(True))
     s.advance_to(1.5)
-    d = s.snapshot()
-    y, f = d["position"][:, 1], d["fluid"]
-    oil_sunk = ((f == 1) & (y < 0.1 - 0.02)).sum() / (f == 1).sum()
-    water_up = ((f == 0) & (y > 0.1 + 0.02)).sum() / (f == 0).sum()
+    oil_sunk, water_up, rms = layering(s)
     assert oil_sunk < 0.01 and water_up < 0.01, (oil_sunk, water_up)
-    rms = float(np.sqrt((d["velocity"] ** 2).sum(axis=1).mean()))
     assert rms < 0.01, f"rms speed {rms * 1000:.1f} mm/s"
 
 
@@ -199,12 +205,8 @@ def test_oil_on_water_comes_to_rest_with_a_tighter_density_bound():
     job["sim"]["max_density_error"] = 0.0005
     spec, _params, s = dfsph(job)
     s.advance_to(2.0)
-    d = s.snapshot()
-    y, f = d["position"][:, 1], d["fluid"]
-    oil_sunk = ((f == 1) & (y < 0.1 - 0.02)).sum() / (f == 1).sum()
-    water_up = ((f == 0) & (y > 0.1 + 0.02)).sum() / (f == 0).sum()
+    oil_sunk, water_up, rms = layering(s)
     assert oil_sunk < 0.01 and water_up < 0.01, (oil_sunk, water_up)
-    rms = float(np.sqrt((d["velocity"] ** 2).sum(axis=1).mean()))
     assert rms < 0.005, f"rms speed {rms * 1000:.1f} mm/s"
 
 
