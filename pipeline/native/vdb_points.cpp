@@ -3,7 +3,8 @@
 //   sphshot-vdb-points write IN OUT.vdb        IN (a file, or - for standard input): uint64 n, then
 //                                              n x 3 float32 positions (m), n x 3 float32
 //                                              velocities (m/s), n float32 radii (m), n int32
-//                                              fluid indices, all little-endian
+//                                              fluid indices, all little-endian; then reads the
+//                                              file back and prints it as `read` does
 //   sphshot-vdb-points read FILE.vdb           prints the grid `spray` as JSON: its point count and,
 //                                              per attribute, sums and extremes (for checks)
 //
@@ -44,35 +45,6 @@ void add_attribute(PointDataGrid& grid, const IndexTreeT& index, const std::stri
     populateAttribute<PointDataTree, IndexTreeT, PointAttributeVector<T>>(grid.tree(), index, name, wrapper);
 }
 
-int write(const std::string& input, const std::string& output) {
-    std::ifstream source;
-    if (input != "-") source.open(input, std::ios::binary);
-    std::istream& in = input == "-" ? std::cin : source;
-    uint64_t n = 0;
-    in.read(reinterpret_cast<char*>(&n), sizeof(n));
-    std::vector<Vec3f> position, velocity;
-    std::vector<float> radius;
-    std::vector<int32_t> fluid;
-    if (!in || !read_block(in, position, n) || !read_block(in, velocity, n) || !read_block(in, radius, n) ||
-        !read_block(in, fluid, n)) {
-        std::cerr << "sphshot-vdb-points: " << input << ": shorter than its point count says" << std::endl;
-        return 1;
-    }
-    PointAttributeVector<Vec3f> positions(position);
-    const float voxel = n > 0 ? computeVoxelSize(positions, 8) : 1.0f;
-    math::Transform::Ptr xform = math::Transform::createLinearTransform(voxel);
-    tools::PointIndexGrid::Ptr index = tools::createPointIndexGrid<tools::PointIndexGrid>(positions, *xform);
-    PointDataGrid::Ptr grid = createPointDataGrid<NullCodec, PointDataGrid>(*index, positions, *xform);
-    add_attribute(*grid, index->tree(), "v", velocity);
-    add_attribute(*grid, index->tree(), "pscale", radius);
-    add_attribute(*grid, index->tree(), "fluid", fluid);
-    grid->setName("spray");
-    io::File file(output);
-    file.write(GridCPtrVec{grid});
-    file.close();
-    return 0;
-}
-
 int read(const std::string& path) {
     io::File file(path);
     file.open();
@@ -111,6 +83,35 @@ int read(const std::string& path) {
                 static_cast<unsigned long long>(n), p[0], p[1], p[2], v[0], v[1], v[2],
                 lo[0], lo[1], lo[2], hi[0], hi[1], hi[2], pscale, fluid);
     return 0;
+}
+
+int write(const std::string& input, const std::string& output) {
+    std::ifstream source;
+    if (input != "-") source.open(input, std::ios::binary);
+    std::istream& in = input == "-" ? std::cin : source;
+    uint64_t n = 0;
+    in.read(reinterpret_cast<char*>(&n), sizeof(n));
+    std::vector<Vec3f> position, velocity;
+    std::vector<float> radius;
+    std::vector<int32_t> fluid;
+    if (!in || !read_block(in, position, n) || !read_block(in, velocity, n) || !read_block(in, radius, n) ||
+        !read_block(in, fluid, n)) {
+        std::cerr << "sphshot-vdb-points: " << input << ": shorter than its point count says" << std::endl;
+        return 1;
+    }
+    PointAttributeVector<Vec3f> positions(position);
+    const float voxel = n > 0 ? computeVoxelSize(positions, 8) : 1.0f;
+    math::Transform::Ptr xform = math::Transform::createLinearTransform(voxel);
+    tools::PointIndexGrid::Ptr index = tools::createPointIndexGrid<tools::PointIndexGrid>(positions, *xform);
+    PointDataGrid::Ptr grid = createPointDataGrid<NullCodec, PointDataGrid>(*index, positions, *xform);
+    add_attribute(*grid, index->tree(), "v", velocity);
+    add_attribute(*grid, index->tree(), "pscale", radius);
+    add_attribute(*grid, index->tree(), "fluid", fluid);
+    grid->setName("spray");
+    io::File file(output);
+    file.write(GridCPtrVec{grid});
+    file.close();
+    return read(output);        // what a reader of the file gets
 }
 
 }  // namespace
