@@ -185,6 +185,11 @@ class ShotPaths:
     vdb: bool = True            # the surface stage writes a .vdb (surface.grids names some grid)
     spray: bool = False         # the surface stage writes a spray points file (surface.spray > 0)
 
+    @property
+    def spray_vdb(self) -> bool:
+        """The surface stage writes the spray as VDB points too (spray on and some grid asked for)."""
+        return self.spray and self.vdb
+
     @classmethod
     def for_spec(cls, spec: ShotSpec) -> "ShotPaths":
         return cls(root=spec.output_root, name=spec.shot.name, mesh_ext=spec.surface.format,

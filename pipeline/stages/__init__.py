@@ -65,7 +65,7 @@ def _render_sections(spec) -> dict[str, Any]:
 def _surface_files(paths, frame: int) -> list:
     return (([paths.surface_vdb(frame)] if paths.vdb else []) + list(paths.surface_meshes(frame).values())
             + ([paths.surface_spray(frame)] if paths.spray else [])
-            + ([paths.surface_spray_vdb(frame)] if paths.spray and paths.vdb else []))
+            + ([paths.surface_spray_vdb(frame)] if paths.spray_vdb else []))
 
 
 STAGES: dict[str, Stage] = {s.name: s for s in (

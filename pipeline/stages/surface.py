@@ -66,7 +66,7 @@ def surface_frame(spec, data: dict, attrs: dict, frame: int):
 
 def ready(spec, paths) -> None:
     """The spray's VDB points need the sphshot-vdb-points tool (scripts/setup.sh builds it)."""
-    if paths.spray and paths.vdb and vdb_points_tool() is None:
+    if paths.spray_vdb and vdb_points_tool() is None:
         raise StageError("surface.spray and surface.grids: the spray's VDB points need sphshot-vdb-points, "
                          "which scripts/setup.sh builds (g++, libopenvdb-dev); run it, or set surface.grids = [] "
                          "or surface.spray = 0")
@@ -107,6 +107,6 @@ def _write_frame(spec, frame: int, paths) -> list:
         points = (data["position"][spray], data["velocity"][spray],
                   float(attrs.get("particle_radius", spec.sim.particle_radius)), data["fluid"][spray])
         written.append(write_points(paths.surface_spray(frame), *points))
-        if paths.vdb:
+        if paths.spray_vdb:
             written.append(write_vdb_points(paths.surface_spray_vdb(frame), *points))
     return written
