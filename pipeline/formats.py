@@ -135,15 +135,74 @@ def write_vdb(final: Path, grids) -> Path:
 
     with atomic_path(final) as tmp:
         vdb.write(str(tmp), grids=grids)
-        # pyopenvdb does not raise when the disk fills: read the grid list back before the file
-        # is published (a truncated file fails here and is never renamed into place)
+        # pyopenvdb does not raise when the disk fills: check the file's layout, then read the
+        # grid list back, before the file is published (a cut-short file fails here and is never
+        # renamed into place). The layout comes first: OpenVDB reading a cut-short file took a
+        # string length from past its end and built a 1.4 GB "grid type" (5.5 GB resident, 30 s)
+        short = vdb_cut_short(tmp)
+        if short:
+            free = shutil.disk_usage(tmp.parent).free / 2 ** 20
+            raise OSError(f"{final}: the OpenVDB file written could not be read back: {short}; "
+                          f"{free:.1f} MB left on its disk")
         try:
             names = [g["name"] for g in vdb.readAllGridMetadata(str(tmp))]
         except Exception as exc:          # OpenVDB's IoError and friends carry no common base
-            raise OSError(f"{final}: the OpenVDB file written could not be read back ({exc})") from None
+            detail = " ".join(str(exc).split())[:200]
+            raise OSError(f"{final}: the OpenVDB file written could not be read back ({detail})") from None
         if sorted(names) != sorted(g.name for g in grids):
             raise OSError(f"{final}: the OpenVDB file written holds {names}, not {[g.name for g in grids]}")
     return final
+
+
+def vdb_cut_short(path: Path) -> str | None:
+    """Why a .vdb file does not hold together, or None if it does. OpenVDB's layout (io/Archive,
+    io/GridDescriptor, file version 224): magic (int64), file version and library version
+    (3 uint32), a grid-offsets flag (1 byte), a UUID (36 bytes), the file's metadata (int32
+    count; per entry the name and type name as uint32-length strings, then a uint32 size and that
+    many bytes), the grid count (int32), and per grid its name, type and instance parent
+    (strings) and the stream positions of its start, its data and its end (3 int64): the next
+    grid starts at that end, and the last ends at the end of the file. Every length and position
+    is checked against the file's size before anything is read past it."""
+    import struct
+
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        def take(n: int, what: str) -> bytes:
+            if n < 0 or f.tell() + n > size:
+                raise EOFError(f"{what} at byte {f.tell()} runs past the end ({size} bytes)")
+            return f.read(n)
+
+        def u32(what: str) -> int:
+            return struct.unpack("<I", take(4, what))[0]
+
+        def string(what: str) -> bytes:
+            return take(u32(what), what)
+
+        try:
+            magic = struct.unpack("<q", take(8, "the magic number"))[0]
+            if magic != 0x56444220:
+                return f"no OpenVDB magic number (0x{magic & 0xFFFFFFFFFFFFFFFF:x})"
+            take(12, "the versions")
+            if take(1, "the grid-offsets flag") != b"\x01":
+                return "written without grid offsets"
+            take(36, "the UUID")
+            for _ in range(u32("the metadata count")):
+                string("a metadata name"), string("a metadata type")
+                take(u32("a metadata value's size"), "a metadata value")
+            count = u32("the grid count")
+            end = f.tell()
+            for k in range(count):
+                string(f"grid {k}'s name"), string(f"grid {k}'s type"), string(f"grid {k}'s instance parent")
+                start, data, end = struct.unpack("<qqq", take(24, f"grid {k}'s stream positions"))
+                if not f.tell() <= start <= data <= end <= size:
+                    return (f"grid {k}'s data (bytes {start} to {end}) does not lie within the file's "
+                            f"{size} bytes")
+                f.seek(end)
+            if end != size:
+                return f"{size - end} bytes after the last grid"
+        except EOFError as exc:
+            return str(exc)
+    return None
 
 
 VDB_POINTS_TOOL = "sphshot-vdb-points"

@@ -367,6 +367,29 @@ def test_vdb_round_trip(vdb_file):
             np.testing.assert_allclose(a1.getValue(ijk), a0.getValue(ijk), rtol=1e-6)
 
 
+def test_a_cut_short_vdb_is_told_from_its_layout_alone(vdb_file, tmp_path):
+    """pyopenvdb leaves a file cut short, without an error, when the disk fills, and OpenVDB
+    reading such a file back took a string length from past its end: a 1.4 GB error line and a
+    5.5 GB process on a full 3 MB disk. So write_vdb first checks the file's layout against its
+    size (formats.vdb_cut_short): the whole file (three grids, and file metadata) holds
+    together; every cut of it, from inside the magic number to its last byte, does not."""
+    import pyopenvdb as ov
+
+    from pipeline.formats import vdb_cut_short
+
+    _path, grids = vdb_file
+    whole = tmp_path / "whole.vdb"
+    ov.write(str(whole), grids=grids, metadata={"creator": "sphshot", "frame": 7})
+    assert vdb_cut_short(whole) is None
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.vdb"
+    for n in sorted({*range(0, 300), *np.linspace(300, len(data) - 1, 200).astype(int)}):
+        cut.write_bytes(data[:n])
+        assert vdb_cut_short(cut), f"cut at {n} of {len(data)} bytes passed"
+    cut.write_bytes(data + b"\0")
+    assert vdb_cut_short(cut) == "1 bytes after the last grid"
+
+
 def test_level_set_agrees_with_mesh_and_radius(sphere_mesh, vdb_file):
     import pyopenvdb as ov
 
@@ -765,6 +788,15 @@ def test_vdb_points_round_trip_and_no_points():
         empty = write_vdb_points(Path(d) / "b.spray.vdb", np.zeros((0, 3)), np.zeros((0, 3)), 0.004, np.zeros(0))
         assert read_vdb_points(empty)["count"] == 0
         assert sorted(p.name for p in Path(d).iterdir()) == ["a.spray.vdb", "b.spray.vdb"]    # no temporaries
+        # the tool checks a file's layout before OpenVDB reads it (what a full disk leaves when
+        # the tool writes): every cut is refused in one short line
+        data = path.read_bytes()
+        cut = Path(d) / "cut.vdb"
+        for n in (0, 20, 57, 70, 130, len(data) // 2, len(data) - 1):
+            cut.write_bytes(data[:n])
+            with pytest.raises(OSError, match="does not hold together") as refused:
+                read_vdb_points(cut)
+            assert len(str(refused.value)) < 300, n
 
 
 def test_spray_vdb_without_its_tool_is_one_clear_error(tmp_path, monkeypatch):

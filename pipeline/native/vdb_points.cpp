@@ -45,7 +45,60 @@ void add_attribute(PointDataGrid& grid, const IndexTreeT& index, const std::stri
     populateAttribute<PointDataTree, IndexTreeT, PointAttributeVector<T>>(grid.tree(), index, name, wrapper);
 }
 
+// Why the .vdb file at `path` does not hold together, or "" if it does: the layout check of
+// pipeline/formats.py's vdb_cut_short (every length and stream position against the file's size),
+// run before OpenVDB opens the file. A file cut short by a full disk is written without an error,
+// and OpenVDB reading one can take a string length from past its end and allocate gigabytes.
+std::string cut_short(const std::string& path) {
+    std::ifstream in(path, std::ios::binary | std::ios::ate);
+    if (!in) return "it cannot be opened";
+    const uint64_t size = static_cast<uint64_t>(in.tellg());
+    in.seekg(0);
+    uint64_t at = 0;
+    auto take = [&](uint64_t n, void* out) {
+        if (n > size - at) return false;
+        if (out) in.read(static_cast<char*>(out), static_cast<std::streamsize>(n));
+        else in.seekg(static_cast<std::streamoff>(n), std::ios::cur);
+        at += n;
+        return static_cast<bool>(in);
+    };
+    auto u32 = [&](uint32_t& v) { return take(4, &v); };
+    auto string = [&]() { uint32_t n = 0; return u32(n) && take(n, nullptr); };
+    const std::string past = "it ends inside its own layout (" + std::to_string(size) + " bytes)";
+    int64_t magic = 0;
+    char versions[12], offsets = 0, uuid[36];
+    uint32_t count = 0;
+    if (!take(8, &magic) || !take(12, versions) || !take(1, &offsets) || !take(36, uuid)) return past;
+    if (magic != 0x56444220) return "no OpenVDB magic number";
+    if (offsets != 1) return "written without grid offsets";
+    if (!u32(count)) return past;
+    for (uint32_t k = 0; k < count; ++k) {
+        uint32_t n = 0;
+        if (!string() || !string() || !u32(n) || !take(n, nullptr)) return past;
+    }
+    if (!u32(count)) return past;
+    uint64_t end = at;
+    for (uint32_t k = 0; k < count; ++k) {
+        int64_t pos[3];
+        if (!string() || !string() || !string() || !take(sizeof(pos), pos)) return past;
+        if (!(static_cast<int64_t>(at) <= pos[0] && pos[0] <= pos[1] && pos[1] <= pos[2] &&
+              static_cast<uint64_t>(pos[2]) <= size)) {
+            return "grid " + std::to_string(k) + "'s data (bytes " + std::to_string(pos[0]) + " to " +
+                   std::to_string(pos[2]) + ") does not lie within the file's " + std::to_string(size) + " bytes";
+        }
+        end = at = static_cast<uint64_t>(pos[2]);
+        in.seekg(static_cast<std::streamoff>(at));
+    }
+    if (end != size) return std::to_string(size - end) + " bytes after the last grid";
+    return "";
+}
+
 int read(const std::string& path) {
+    const std::string why = cut_short(path);
+    if (!why.empty()) {
+        std::cerr << "sphshot-vdb-points: " << path << ": the file does not hold together: " << why << std::endl;
+        return 1;
+    }
     io::File file(path);
     file.open();
     GridBase::Ptr base = file.readGrid("spray");
@@ -126,7 +179,10 @@ int main(int argc, char** argv) {
     try {
         return mode == "write" ? write(argv[2], argv[3]) : read(argv[2]);
     } catch (const std::exception& exc) {
-        std::cerr << "sphshot-vdb-points: " << exc.what() << std::endl;
+        std::string what = exc.what();          // OpenVDB's messages can quote what it read: keep one short line
+        for (char& c : what) if (c == '\n' || c == '\r') c = ' ';
+        if (what.size() > 200) what = what.substr(0, 200) + "...";
+        std::cerr << "sphshot-vdb-points: " << what << std::endl;
         return 1;
     }
 }
