@@ -434,6 +434,28 @@ def test_movie_and_contact_sheet(tmp_path):
     assert sheet.size == (cols * 244 + 4, rows * (th + 4) + 4)
 
 
+def test_a_movie_cut_short_by_a_full_disk_is_not_published(tmp_path):
+    """On a full disk ffmpeg only logs that it could not write the movie's trailer and
+    imageio-ffmpeg returns as if done: the cut-short movie was published and never made again.
+    write_movie counts the frames of what it wrote before publishing it: on a 64 kB disk (a real
+    tmpfs; skipped where none can be mounted) 12 frames of noise are one clear OSError naming the
+    movie, and nothing is left on the disk."""
+    from conftest import mounted_tmpfs
+
+    from pipeline.stages.render import write_movie
+
+    rng = np.random.default_rng(5)
+    frames = []
+    for k in range(12):
+        frames.append(tmp_path / f"f.{k:04d}.png")
+        Image.fromarray(rng.integers(0, 255, (90, 160, 3), dtype=np.uint8)).save(frames[-1])
+    assert write_movie(tmp_path / "whole.mp4", frames, 24.0).stat().st_size > 64 * 1024
+    with mounted_tmpfs(tmp_path / "disk", "size=64k") as disk:
+        with pytest.raises(OSError, match="the movie written could not be read, not 12 frames"):
+            write_movie(disk / "m.mp4", frames, 24.0)
+        assert list(disk.iterdir()) == []
+
+
 def test_camera_keys_interpolate(tmp_path):
     from pipeline.stages.render import camera_at
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import atexit
 import logging
 import os
+import shutil
 import threading
 from pathlib import Path
 
@@ -616,7 +617,9 @@ def finalize(spec, paths, force: bool = False) -> list[Path]:
 
 
 def write_movie(final: Path, images: list[Path], fps: float) -> Path:
-    """H.264 MP4 (yuv420p); odd widths or heights are padded by one pixel to be even."""
+    """H.264 MP4 (yuv420p); odd widths or heights are padded by one pixel to be even. The movie
+    is read back (its frames counted, without decoding) before it is published: on a full disk
+    ffmpeg only logs that it could not write the trailer, and imageio-ffmpeg returns as if done."""
     import imageio_ffmpeg
     from PIL import Image
 
@@ -625,7 +628,7 @@ def write_movie(final: Path, images: list[Path], fps: float) -> Path:
     W, H = w + (w % 2), h + (h % 2)
     with atomic_path(final) as tmp:
         writer = imageio_ffmpeg.write_frames(str(tmp), (W, H), fps=fps, codec="libx264",
-                                             pix_fmt_out="yuv420p", macro_block_size=1,
+                                             pix_fmt_out="yuv420p", macro_block_size=1, ffmpeg_log_level="quiet",
                                              output_params=["-f", "mp4", "-crf", "20"])
         writer.send(None)
         for p in images:
@@ -634,6 +637,15 @@ def write_movie(final: Path, images: list[Path], fps: float) -> Path:
                 img = np.pad(img, ((0, H - h), (0, W - w), (0, 0)), mode="edge")
             writer.send(np.ascontiguousarray(img))
         writer.close()
+        try:
+            frames = imageio_ffmpeg.count_frames_and_secs(str(tmp))[0]
+        except RuntimeError:
+            frames = None
+        if frames != len(images):
+            free = shutil.disk_usage(tmp.parent).free / 2 ** 20
+            got = "could not be read" if frames is None else f"holds {frames} frames"
+            raise OSError(f"{final}: the movie written {got}, not {len(images)} frames; {free:.1f} MB left on "
+                          f"its disk")
     return final
 
 
