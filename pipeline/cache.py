@@ -55,6 +55,12 @@ def atomic_path(final: Path) -> Iterator[Path]:
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, final)
+    except OSError as err:
+        # a system error names the file it was writing: this one, not its hidden temporary
+        # (Pillow's full-disk error named no file at all)
+        if err.errno is not None and (not err.filename or str(err.filename) == str(tmp)):
+            raise OSError(err.errno, err.strerror or str(err), str(final)) from err
+        raise
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()

@@ -303,8 +303,9 @@ def main(argv: list[str] | None = None) -> int:
         return errors.EXIT_OK
     except OSError as err:     # a full disk, a folder gone or not writable mid-run: one line
         where = f": {err.filename}" if getattr(err, "filename", None) else ""
-        print(f"sphshot: error: {err.strerror or err}{where} (nothing half-written was published)",
-              file=sys.stderr)
+        what = " ".join(str(err.strerror or err).split())      # one line, whatever a library said
+        what = what if len(what) <= 300 else what[:300] + "..."
+        print(f"sphshot: error: {what}{where} (nothing half-written was published)", file=sys.stderr)
         return errors.EXIT_FAILURE
 
 

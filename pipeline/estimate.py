@@ -10,11 +10,18 @@ Figures per unit, measured (bench/RESULTS.md, eleventh session):
   arrays: 720 MB for the 500k frame with velocities, 250 MB of it Python and Taichi);
 - a mesh collider's distance grid: OpenVDB voxelises the whole mesh, not only the part inside
   the domain: 12 bytes a voxel over the mesh's own box;
-- disk: a sim frame is 37 bytes a particle (position, velocity, density, pressure, id, fluid),
-  a checkpoint about 60, a surface frame (mesh and VDB grids) about 40.
+- disk (the example jobs' full runs, twenty-second session): a sim frame is 41-43 bytes a
+  particle (position, velocity, density, pressure, id, fluid), a checkpoint 65. A surface frame
+  grows with the water's surface, not its particles: over a whole shot 296-329 bytes a frame per
+  cell^2 of the fluid blocks' starting surface (dambreak, two_fluids, boulder: the surface
+  spreads, splashes and ripples), of which the binary PLY mesh is about 40 % (OBJ, ASCII, 2.5
+  times that), the `vel` grid 33 %, `surface` and `density` 14 % each; counted here with a
+  quarter more. A rendered PNG is 0.33-0.36 bytes a pixel (counted as 0.5), a 16-bit depth
+  PNG at most 2.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shutil
@@ -26,7 +33,11 @@ NODE_BYTES = 26                # per surfacing grid node, at the peak of one fra
 NODES_PER_CELL_VOLUME = 1.9    # blocks reach a support beyond the fluid: 36 nodes/particle at 0.75 r
 VOXEL_BYTES = 12               # per collider distance-grid voxel while OpenVDB builds it
 BASE_BYTES = 300 * 2 ** 20     # Python, NumPy, Taichi, VTK loaded
-FRAME_BYTES, CHECKPOINT_BYTES, SURFACE_BYTES = 37, 60, 40     # on disk, per particle
+FRAME_BYTES, CHECKPOINT_BYTES = 44, 66        # on disk, per particle
+# a surface frame, per cell^2 of the fluid blocks' starting surface (module docstring)
+MESH_BYTES = {"ply": 150.0, "vtu": 150.0, "obj": 375.0}
+GRID_BYTES = {"surface": 55.0, "density": 55.0, "velocity": 125.0}
+PNG_BYTES, DEPTH_BYTES = 0.5, 2.0              # a rendered frame, per pixel
 
 
 @dataclass(frozen=True)
@@ -50,12 +61,14 @@ class Estimate:
 def estimate(spec) -> Estimate:
     r = spec.sim.particle_radius
     d = 2.0 * r
-    particles = 0.0
+    particles = area = 0.0
     for f in spec.fluids:
         for b in f.blocks:
             # the fill's lattice: floor(extent / 2r) a side, at least one (solver/fill.py)
             particles += math.prod(max(math.floor(e / d + 1e-6), 1) if e / d < 1e15 else e / d
                                    for e in (hi - lo for lo, hi in zip(b.min, b.max)))
+            x, y, z = (max(hi - lo, d) for lo, hi in zip(b.min, b.max))
+            area += 2.0 * (x * y + y * z + x * z)
     cell = spec.surface_cell_m
     nodes = particles * (d / cell) ** 3 * NODES_PER_CELL_VOLUME
     voxels = 0.0
@@ -67,7 +80,12 @@ def estimate(spec) -> Estimate:
             voxels += math.prod(float(e) / spec.collider_voxel_m(col) + 2 for e in extent)
     frames = len(spec.frames)
     checkpoints = frames / max(spec.shot.checkpoint_every, 1) + 2
-    disk = particles * (frames * (FRAME_BYTES + SURFACE_BYTES) + checkpoints * CHECKPOINT_BYTES)
+    surface_frame = area / cell / cell * (MESH_BYTES[spec.surface.format]
+                                        + sum(GRID_BYTES[g] for g in spec.surface.grids))
+    w, h = spec.render.resolution
+    render_frame = w * h * (PNG_BYTES + (DEPTH_BYTES if spec.render.depth != "none" else 0.0))
+    disk = (particles * (frames * FRAME_BYTES + checkpoints * CHECKPOINT_BYTES)
+            + frames * (surface_frame + render_frame))
     return Estimate(particles, particles * SIM_BYTES, nodes * NODE_BYTES, voxels * VOXEL_BYTES, disk)
 
 
@@ -90,6 +108,16 @@ def free_disk(path: Path) -> float:
     return float(shutil.disk_usage(p).free)
 
 
+def used_disk(path: Path) -> float:
+    """Bytes already under `path` (a resumed shot's frames: they are not written again)."""
+    total = 0
+    for folder, _dirs, files in os.walk(path):
+        for name in files:
+            with contextlib.suppress(OSError):
+                total += os.lstat(os.path.join(folder, name)).st_size
+    return float(total)
+
+
 def too_big(spec, est: Estimate, max_memory: float | None = None) -> str | None:
     """One line saying why the shot cannot run here, or None."""
     limit = max_memory if max_memory is not None else available_memory()
@@ -100,10 +128,11 @@ def too_big(spec, est: Estimate, max_memory: float | None = None) -> str | None:
         culprit = "the mesh colliders' voxel_size (or their scale)" if est.colliders > est.sim + est.surface \
             else f"sim.particle_radius = {spec.sim.particle_radius:g} m (a larger radius or smaller fluid blocks)"
         return f"the shot needs {est.line()}: over the {_gb(limit, '')} {where}; change {culprit}"
-    free = free_disk(spec.output_root)
-    if est.disk > free:
-        return (f"the shot would write {_gb(est.disk)} to {spec.output_root}, which has {_gb(free, '')} "
-                f"free; use a larger sim.particle_radius, fewer frames or another shot.output")
+    free, written = free_disk(spec.output_root), used_disk(spec.output_root)
+    if est.disk - written > free:
+        more = f" more (of {_gb(est.disk, '')} in all)" if written else ""
+        return (f"the shot would write {_gb(est.disk - written)}{more} to {spec.output_root}, which has "
+                f"{_gb(free, '')} free; use a larger sim.particle_radius, fewer frames or another shot.output")
     return None
 
 

@@ -17,6 +17,7 @@ once it is complete. The user's input meshes (mesh colliders) are read by pipeli
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -36,12 +37,23 @@ FRAME_DATASETS = {"position": np.float32, "velocity": np.float32, "density": np.
 # ---------------------------------------------------------------------------- sim frames (HDF5)
 def write_h5(final: Path, datasets: dict[str, np.ndarray], attrs: dict) -> Path:
     with atomic_path(final) as tmp:
-        with h5py.File(tmp, "w") as f:
-            for k, v in datasets.items():
-                f.create_dataset(k, data=v)
-            for k, v in attrs.items():
-                f.attrs[k] = v
+        try:
+            with h5py.File(tmp, "w") as f:
+                for k, v in datasets.items():
+                    f.create_dataset(k, data=v)
+                for k, v in attrs.items():
+                    f.attrs[k] = v
+        except OSError as err:
+            raise _system_error(err, final) from err
     return final
+
+
+def _system_error(err: OSError, final: Path) -> OSError:
+    """HDF5 reports a failed write as one long message with the system's error inside ("file
+    write failed: time = ..., filename = <the temporary>, ..., errno = 28, error message = 'No
+    space left on device', ..."): that error, naming the file being written."""
+    m = re.search(r"errno = (\d+), error message = '([^']*)'", str(err))
+    return OSError(int(m.group(1)), m.group(2), str(final)) if m else err
 
 
 def write_frame(final: Path, data: dict[str, np.ndarray], attrs: dict) -> Path:
