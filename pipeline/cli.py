@@ -141,7 +141,7 @@ def _preflight(spec, args):
     if bad:
         raise UsageError(f"{args.job}: shot.output: {bad}")
     est = estimate(spec)
-    problem = too_big(spec, est, args.max_memory)
+    problem = too_big(spec, est, args.max_memory, _stages(getattr(args, "stage", None) or "all"))
     if problem:
         raise TooBig(f"{args.job}: {problem}")
     return est

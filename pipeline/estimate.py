@@ -10,6 +10,11 @@ Figures per unit, measured (bench/RESULTS.md, eleventh session):
   arrays: 720 MB for the 500k frame with velocities, 250 MB of it Python and Taichi);
 - a mesh collider's distance grid: OpenVDB voxelises the whole mesh, not only the part inside
   the domain: 12 bytes a voxel over the mesh's own box;
+- rendering (twenty-second session, the example's render stage alone, peak resident): 512, 573
+  and 708 MB at 480x270, 960x540 and 1920x1080 with SSAA: VTK, PyVista and Mesa's llvmpipe
+  about 490 MB over Python's own, and about 110 bytes an output pixel; counted as RENDER_BYTES
+  over BASE_BYTES and 120 a pixel. The example end to end in one process peaked at 738 MB
+  (sim alone 215, surface alone 408);
 - disk (the example jobs' full runs, twenty-second session): a sim frame is 41-43 bytes a
   particle (position, velocity, density, pressure, id, fluid), a checkpoint 65. A surface frame
   grows with the water's surface, not its particles: over a whole shot 296-329 bytes a frame per
@@ -32,7 +37,9 @@ SIM_BYTES = 1_200              # per particle: device arrays and host copies
 NODE_BYTES = 26                # per surfacing grid node, at the peak of one frame
 NODES_PER_CELL_VOLUME = 1.9    # blocks reach a support beyond the fluid: 36 nodes/particle at 0.75 r
 VOXEL_BYTES = 12               # per collider distance-grid voxel while OpenVDB builds it
-BASE_BYTES = 300 * 2 ** 20     # Python, NumPy, Taichi, VTK loaded
+BASE_BYTES = 300 * 2 ** 20     # Python, NumPy, Taichi loaded
+RENDER_BYTES = 450 * 2 ** 20   # VTK, PyVista and Mesa loaded, while rendering
+PIXEL_BYTES = 120              # per output pixel, while rendering
 FRAME_BYTES, CHECKPOINT_BYTES = 44, 66        # on disk, per particle
 # a surface frame, per cell^2 of the fluid blocks' starting surface (module docstring)
 MESH_BYTES = {"ply": 150.0, "vtu": 150.0, "obj": 375.0}
@@ -47,15 +54,22 @@ class Estimate:
     surface: float             # bytes while one frame is surfaced
     colliders: float           # bytes while the mesh colliders' distance grids are built
     disk: float                # bytes the whole shot writes
+    render: float = 0.0        # bytes while a frame is rendered (the libraries included)
 
     @property
     def memory(self) -> float:
-        """The peak: stages run one after another, the colliders' grids while the sim starts."""
-        return BASE_BYTES + max(self.sim + self.colliders, self.surface)
+        return self.memory_for(("sim", "surface", "render"))
+
+    def memory_for(self, stages) -> float:
+        """The peak of a run of these stages: they run one after another, the colliders' grids
+        while the sim starts."""
+        parts = {"sim": self.sim + self.colliders, "surface": self.surface, "render": self.render}
+        return BASE_BYTES + max([parts[s] for s in stages] or [0.0])
 
     def line(self) -> str:
         return (f"{_count(self.particles)} particles; memory {_gb(self.memory)} (sim {_gb(self.sim)}, "
-                f"surfacing {_gb(self.surface)}, collider grids {_gb(self.colliders)}); disk {_gb(self.disk)}")
+                f"surfacing {_gb(self.surface)}, collider grids {_gb(self.colliders)}, rendering "
+                f"{_gb(self.render)}); disk {_gb(self.disk)}")
 
 
 def estimate(spec) -> Estimate:
@@ -86,7 +100,8 @@ def estimate(spec) -> Estimate:
     render_frame = w * h * (PNG_BYTES + (DEPTH_BYTES if spec.render.depth != "none" else 0.0))
     disk = (particles * (frames * FRAME_BYTES + checkpoints * CHECKPOINT_BYTES)
             + frames * (surface_frame + render_frame))
-    return Estimate(particles, particles * SIM_BYTES, nodes * NODE_BYTES, voxels * VOXEL_BYTES, disk)
+    return Estimate(particles, particles * SIM_BYTES, nodes * NODE_BYTES, voxels * VOXEL_BYTES, disk,
+                    RENDER_BYTES + w * h * PIXEL_BYTES)
 
 
 def available_memory() -> float:
@@ -118,15 +133,20 @@ def used_disk(path: Path) -> float:
     return float(total)
 
 
-def too_big(spec, est: Estimate, max_memory: float | None = None) -> str | None:
-    """One line saying why the shot cannot run here, or None."""
+def too_big(spec, est: Estimate, max_memory: float | None = None,
+            stages=("sim", "surface", "render")) -> str | None:
+    """One line saying why a run of these stages of the shot cannot run here, or None."""
     limit = max_memory if max_memory is not None else available_memory()
     where = "--max-memory" if max_memory is not None else "available on this machine"
     if BASE_BYTES > limit:
         return f"--max-memory {_gb(limit, '')} is less than Python and the libraries take ({_gb(BASE_BYTES)})"
-    if est.memory > limit:
-        culprit = "the mesh colliders' voxel_size (or their scale)" if est.colliders > est.sim + est.surface \
-            else f"sim.particle_radius = {spec.sim.particle_radius:g} m (a larger radius or smaller fluid blocks)"
+    if est.memory_for(stages) > limit:
+        if "render" in stages and est.render >= est.memory_for([s for s in stages if s != "render"]) - BASE_BYTES:
+            culprit = "render.resolution (or render on a larger machine: --stage render)"
+        elif est.colliders > est.sim + est.surface:
+            culprit = "the mesh colliders' voxel_size (or their scale)"
+        else:
+            culprit = f"sim.particle_radius = {spec.sim.particle_radius:g} m (a larger radius or smaller fluid blocks)"
         return f"the shot needs {est.line()}: over the {_gb(limit, '')} {where}; change {culprit}"
     free, written = free_disk(spec.output_root), used_disk(spec.output_root)
     if est.disk - written > free:
