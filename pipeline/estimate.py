@@ -14,7 +14,8 @@ Figures per unit, measured (bench/RESULTS.md, eleventh session):
   and 708 MB at 480x270, 960x540 and 1920x1080 with SSAA: VTK, PyVista and Mesa's llvmpipe
   about 490 MB over Python's own, and about 110 bytes an output pixel; counted as RENDER_BYTES
   over BASE_BYTES and 120 a pixel. The example end to end in one process peaked at 738 MB
-  (sim alone 215, surface alone 408);
+  (sim alone 215, surface alone 408: OpenVDB, scikit-image and the meshes' arrays about 110 MB
+  over Python and Taichi, counted as SURFACE_BYTES);
 - disk (the example jobs' full runs, twenty-second session): a sim frame is 41-43 bytes a
   particle (position, velocity, density, pressure, id, fluid), a checkpoint 65. A surface frame
   grows with the water's surface, not its particles: over a whole shot 296-329 bytes a frame per
@@ -39,6 +40,7 @@ NODES_PER_CELL_VOLUME = 1.9    # blocks reach a support beyond the fluid: 36 nod
 VOXEL_BYTES = 12               # per collider distance-grid voxel while OpenVDB builds it
 BASE_BYTES = 300 * 2 ** 20     # Python, NumPy, Taichi loaded
 RENDER_BYTES = 450 * 2 ** 20   # VTK, PyVista and Mesa loaded, while rendering
+SURFACE_BYTES = 120 * 2 ** 20  # OpenVDB and scikit-image loaded, while surfacing
 PIXEL_BYTES = 120              # per output pixel, while rendering
 FRAME_BYTES, CHECKPOINT_BYTES = 44, 66        # on disk, per particle
 # a surface frame, per cell^2 of the fluid blocks' starting surface (module docstring)
@@ -100,7 +102,7 @@ def estimate(spec) -> Estimate:
     render_frame = w * h * (PNG_BYTES + (DEPTH_BYTES if spec.render.depth != "none" else 0.0))
     disk = (particles * (frames * FRAME_BYTES + checkpoints * CHECKPOINT_BYTES)
             + frames * (surface_frame + render_frame))
-    return Estimate(particles, particles * SIM_BYTES, nodes * NODE_BYTES, voxels * VOXEL_BYTES, disk,
+    return Estimate(particles, particles * SIM_BYTES, SURFACE_BYTES + nodes * NODE_BYTES, voxels * VOXEL_BYTES, disk,
                     RENDER_BYTES + w * h * PIXEL_BYTES)
 
 
