@@ -53,20 +53,24 @@ PNG_BYTES, DEPTH_BYTES = 0.5, 2.0              # a rendered frame, per pixel
 class Estimate:
     particles: float
     sim: float                 # bytes while the sim stage runs
-    surface: float             # bytes while one frame is surfaced
     colliders: float           # bytes while the mesh colliders' distance grids are built
+    surface: float             # bytes while one frame is surfaced (its libraries included)
+    render: float              # bytes while a frame is rendered (its libraries included)
     disk: float                # bytes the whole shot writes
-    render: float = 0.0        # bytes while a frame is rendered (the libraries included)
 
     @property
     def memory(self) -> float:
         return self.memory_for(("sim", "surface", "render"))
 
+    def parts(self, stages) -> dict[str, float]:
+        """What each of these stages holds at its peak beyond BASE_BYTES (the colliders' grids
+        are built as the sim starts)."""
+        every = {"sim": self.sim + self.colliders, "surface": self.surface, "render": self.render}
+        return {stage: every[stage] for stage in stages}
+
     def memory_for(self, stages) -> float:
-        """The peak of a run of these stages: they run one after another, the colliders' grids
-        while the sim starts."""
-        parts = {"sim": self.sim + self.colliders, "surface": self.surface, "render": self.render}
-        return BASE_BYTES + max([parts[s] for s in stages] or [0.0])
+        """The peak of a run of these stages: they run one after another."""
+        return BASE_BYTES + max(self.parts(stages).values(), default=0.0)
 
     def line(self) -> str:
         return (f"{_count(self.particles)} particles; memory {_gb(self.memory)} (sim {_gb(self.sim)}, "
@@ -102,8 +106,8 @@ def estimate(spec) -> Estimate:
     render_frame = w * h * (PNG_BYTES + (DEPTH_BYTES if spec.render.depth != "none" else 0.0))
     disk = (particles * (frames * FRAME_BYTES + checkpoints * CHECKPOINT_BYTES)
             + frames * (surface_frame + render_frame))
-    return Estimate(particles, particles * SIM_BYTES, SURFACE_BYTES + nodes * NODE_BYTES, voxels * VOXEL_BYTES, disk,
-                    RENDER_BYTES + w * h * PIXEL_BYTES)
+    return Estimate(particles, sim=particles * SIM_BYTES, colliders=voxels * VOXEL_BYTES,
+                    surface=SURFACE_BYTES + nodes * NODE_BYTES, render=RENDER_BYTES + w * h * PIXEL_BYTES, disk=disk)
 
 
 def available_memory() -> float:
@@ -143,9 +147,11 @@ def too_big(spec, est: Estimate, max_memory: float | None = None,
     if BASE_BYTES > limit:
         return f"--max-memory {_gb(limit, '')} is less than Python and the libraries take ({_gb(BASE_BYTES)})"
     if est.memory_for(stages) > limit:
-        if "render" in stages and est.render >= est.memory_for([s for s in stages if s != "render"]) - BASE_BYTES:
+        parts = est.parts(stages)
+        largest = max(parts, key=parts.get)
+        if largest == "render":
             culprit = "render.resolution (or render on a larger machine: --stage render)"
-        elif est.colliders > est.sim + est.surface:
+        elif largest == "sim" and est.colliders > est.sim:
             culprit = "the mesh colliders' voxel_size (or their scale)"
         else:
             culprit = f"sim.particle_radius = {spec.sim.particle_radius:g} m (a larger radius or smaller fluid blocks)"
