@@ -29,6 +29,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from .cache import write_text_atomic
+from .estimate import estimate
 from .spec import ShotSpec
 from .stages import STAGES, Stage
 
@@ -54,7 +55,8 @@ def export_job(spec: ShotSpec, job: Path, overrides: list[str], to: str, chunk: 
                output: Path | None = None, farm: dict | None = None) -> Path:
     """`farm`: site settings from the command line -- show and service (OpenCue); cpus,
     mem_gb, time and gpus: SLURM requests, OpenJD host requirements, OpenCue cores and GPUs
-    (GPUs go to the sim only)."""
+    (GPUs go to the sim only). Without mem_gb each stage asks for the memory the pre-flight
+    estimates for it (stage_memory_mb)."""
     out = output or spec.output_root / "farm" / f"{spec.shot.name}.{SUFFIX[to]}"
     extra = {"farm": farm or {}}
     text = {"slurm": slurm_script, "opencue": opencue_xml, "openjd": openjd_template}[to](
@@ -63,6 +65,18 @@ def export_job(spec: ShotSpec, job: Path, overrides: list[str], to: str, chunk: 
     if to == "slurm":
         Path(out).chmod(0o755)
     return Path(out)
+
+
+def stage_memory_mb(spec: ShotSpec, farm: dict | None) -> dict[str, int]:
+    """Each stage's memory request in MB: --mem for all if given, else the pre-flight's estimate
+    for a task of that stage alone (pipeline/estimate.py: the render stage's VTK and Mesa, the
+    sim's particles), rounded up to 256 MB, so that a farm neither kills a render task for
+    overrunning its node's default nor books a sim's gigabytes for every render task."""
+    if farm and farm.get("mem_gb"):
+        mb = max(1, math.ceil(float(farm["mem_gb"]) * 1024))
+        return {stage: mb for stage in STAGES}
+    est = estimate(spec)
+    return {stage: 256 * math.ceil(est.memory_for([stage]) / 2 ** 28) for stage in STAGES}
 
 
 def _job_name(spec: ShotSpec) -> str:
@@ -74,6 +88,7 @@ def slurm_script(spec: ShotSpec, job: Path, overrides: list[str], chunk: int, fa
     cmd = sphshot_command()
     a, b = spec.shot.frame_start, spec.shot.frame_end
     tasks = (b - a) // chunk + 1
+    memory = stage_memory_mb(spec, farm)
     name = _job_name(spec)
     logs = spec.output_root / "farm" / "logs"
 
@@ -105,7 +120,8 @@ def slurm_script(spec: ShotSpec, job: Path, overrides: list[str], chunk: int, fa
         else:
             opts = (f'--output="$LOGS/%x.%j.log" \\\n    --signal=B:USR1@120 --requeue '
                     f'"${{sim_extra[@]}}" --wrap={sim_wrap()}')
-        return f'{s}=$("$SBATCH" "${{common[@]}}" --job-name={name}.{s} {opts})\n{s}=${{{s}%%;*}}\n'
+        mem = shlex.quote(f"--mem={memory[s]}M")         # before the site's options, which win
+        return f'{s}=$("$SBATCH" {mem} "${{common[@]}}" --job-name={name}.{s} {opts})\n{s}=${{{s}%%;*}}\n'
 
     submissions = "\n".join(submit(stage) for stage in STAGES.values())
 
@@ -139,8 +155,6 @@ def _requests(farm: dict) -> str:
     words = []
     if farm.get("cpus"):
         words.append(f"--cpus-per-task={int(farm['cpus'])}")
-    if farm.get("mem_gb"):
-        words.append(f"--mem={max(1, math.ceil(float(farm['mem_gb']) * 1024))}M")
     if farm.get("time"):
         words.append(f"--time={farm['time']}")
     return "".join(shlex.quote(w) + " " for w in words)
@@ -150,13 +164,12 @@ def _sim_requests(farm: dict) -> str:
     return f"--gres=gpu:{int(farm['gpus'])}" if farm.get("gpus") else ""
 
 
-def _openjd_amounts(farm: dict, gpu: bool) -> list[dict]:
-    """OpenJD host requirements from the command line (GPUs for the sim only)."""
+def _openjd_amounts(farm: dict, memory_mb: int, gpu: bool) -> list[dict]:
+    """OpenJD host requirements: the command line's, the stage's memory (GPUs for the sim only)."""
     out = []
     if farm.get("cpus"):
         out.append({"name": "amount.worker.vcpu", "min": int(farm["cpus"])})
-    if farm.get("mem_gb"):
-        out.append({"name": "amount.worker.memory", "min": max(1, math.ceil(float(farm["mem_gb"]) * 1024))})
+    out.append({"name": "amount.worker.memory", "min": memory_mb})
     if gpu and farm.get("gpus"):
         out.append({"name": "amount.worker.gpu", "min": int(farm["gpus"])})
     return out
@@ -167,6 +180,7 @@ def opencue_xml(spec: ShotSpec, job: Path, overrides: list[str], chunk: int, far
     farm = farm or {}
     cmd = sphshot_command()
     name = _job_name(spec)
+    memory = stage_memory_mb(spec, farm)
     a, b = spec.shot.frame_start, spec.shot.frame_end
     root = ET.Element("spec")
     for tag, text in (("show", farm.get("show") or "sphshot"), ("shot", spec.shot.name), ("user", getpass.getuser())):
@@ -183,8 +197,7 @@ def opencue_xml(spec: ShotSpec, job: Path, overrides: list[str], chunk: int, far
         ET.SubElement(el, "chunk").text = str(size)
         if farm.get("cpus"):
             ET.SubElement(el, "cores").text = str(int(farm["cpus"]))
-        if farm.get("mem_gb"):      # cuebot reads "<n>m" as megabytes (a bare number: gigabytes)
-            ET.SubElement(el, "memory").text = f"{max(1, math.ceil(float(farm['mem_gb']) * 1024))}m"
+        ET.SubElement(el, "memory").text = f"{memory[stage]}m"    # cuebot reads "<n>m" as MB (a bare n: GB)
         if farm.get("gpus") and stage == "sim":
             ET.SubElement(el, "gpus").text = str(int(farm["gpus"]))
         services = ET.SubElement(el, "services")
@@ -222,6 +235,7 @@ def openjd_template(spec: ShotSpec, job: Path, overrides: list[str], chunk: int,
     a, b = spec.shot.frame_start, spec.shot.frame_end
     shot_output = spec.output_root.parent.parent           # <output>/<name>/v### -> <output>
     mapped = [*overrides, "shot.output='{{Param.ShotOutput}}'"]
+    memory = stage_memory_mb(spec, farm)
 
     def action(stage: str, extra: list[str]) -> dict:
         return {"onRun": {"command": cmd[0],
@@ -237,9 +251,8 @@ def openjd_template(spec: ShotSpec, job: Path, overrides: list[str], chunk: int,
             out["dependencies"] = [{"dependsOn": stage.upstream}]
         if stage.per_frame:
             out["parameterSpace"] = frame_param
-        amounts = _openjd_amounts(farm or {}, gpu=not stage.per_frame)
-        if amounts:
-            out["hostRequirements"] = {"amounts": amounts}
+        out["hostRequirements"] = {"amounts": _openjd_amounts(farm or {}, memory[stage.name],
+                                                              gpu=not stage.per_frame)}
         out["script"] = {"actions": action(stage.name, chunked if stage.per_frame else [])}
         return out
 

@@ -376,6 +376,30 @@ print(f"{1000 + n};cluster")
 '''
 
 
+def test_exports_ask_each_stage_for_its_estimated_memory(job_copy, tmp_path):
+    """Without --mem each exported stage asks for the memory the pre-flight estimates for a task
+    of that stage alone, in 256 MB steps (the small shot: the render's VTK and Mesa make it the
+    largest; measured for the example: sim 215 MB, surface 408, render 573 resident), so a
+    farm's default per-task memory cannot starve a render and a sim's gigabytes are not booked
+    for every render task. In the SLURM script each job's --mem comes before the site's options,
+    which win."""
+    from pipeline.export import stage_memory_mb
+
+    job = job_copy()
+    args = small()
+    mb = stage_memory_mb(spec_of(job, args), {})
+    assert mb["sim"] < mb["render"] and all(v % 256 == 0 and v >= 256 for v in mb.values()), mb
+    slurm = export(job, args, "slurm").read_text()
+    for stage in ("sim", "surface", "render"):
+        line = next(ln for ln in slurm.splitlines() if ln.startswith(f'{stage}=$("$SBATCH"'))
+        assert line.index(f"--mem={mb[stage]}M") < line.index('"${common[@]}"'), line
+    root = ET.parse(export(job, args, "opencue")).getroot()
+    assert [el.findtext("memory") for el in root.iter("layer")] == [f"{mb[s]}m" for s in ("sim", "surface", "render")]
+    steps = json.loads(export(job, args, "openjd").read_text())["steps"]
+    assert [{a["name"]: a["min"] for a in st["hostRequirements"]["amounts"]} for st in steps] == \
+        [{"amount.worker.memory": mb[s]} for s in ("sim", "surface", "render")]
+
+
 def test_slurm_export_runs_locally(simmed, tmp_path):
     job = copy_shot(simmed, tmp_path / "shot")
     args = small()
