@@ -84,7 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--show", help="OpenCue show (default: sphshot)")
     e.add_argument("--service", help="OpenCue service of every layer (default: shell)")
     e.add_argument("--cpus", type=_positive, metavar="N", help="SLURM: CPUs per task")
-    e.add_argument("--mem", type=_gigabytes, metavar="GB", help="SLURM: memory per task")
+    e.add_argument("--mem", type=_gigabytes, metavar="GB",
+                   help="memory per task (default: each stage's pre-flight estimate, in 256 MB steps)")
     e.add_argument("--time", metavar="D-HH:MM:SS", help="SLURM: time limit per task")
     e.add_argument("--gpus", type=_positive, metavar="N", help="SLURM: GPUs for the sim task")
     e.add_argument("-o", "--output", metavar="FILE",
