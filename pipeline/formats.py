@@ -174,7 +174,8 @@ def vdb_cut_short(path: Path) -> str | None:
     many bytes), the grid count (int32), and per grid its name, type and instance parent
     (strings) and the stream positions of its start, its data and its end (3 int64): the next
     grid starts at that end, and the last ends at the end of the file. Every length and position
-    is checked against the file's size before anything is read past it."""
+    is checked against the file's size before anything is read past it. sphshot-vdb-points runs
+    the same check in C++ before it opens a file (pipeline/native/vdb_points.cpp, cut_short)."""
     import struct
 
     size = path.stat().st_size
