@@ -34,6 +34,8 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+from .stages import STAGES
+
 SIM_BYTES = 1_200              # per particle: device arrays and host copies
 NODE_BYTES = 26                # per surfacing grid node, at the peak of one frame
 NODES_PER_CELL_VOLUME = 1.9    # blocks reach a support beyond the fluid: 36 nodes/particle at 0.75 r
@@ -60,7 +62,7 @@ class Estimate:
 
     @property
     def memory(self) -> float:
-        return self.memory_for(("sim", "surface", "render"))
+        return self.memory_for(STAGES)
 
     def parts(self, stages) -> dict[str, float]:
         """What each of these stages holds at its peak beyond BASE_BYTES (the colliders' grids
@@ -139,8 +141,7 @@ def used_disk(path: Path) -> float:
     return float(total)
 
 
-def too_big(spec, est: Estimate, max_memory: float | None = None,
-            stages=("sim", "surface", "render")) -> str | None:
+def too_big(spec, est: Estimate, max_memory: float | None = None, stages=tuple(STAGES)) -> str | None:
     """One line saying why a run of these stages of the shot cannot run here, or None."""
     limit = max_memory if max_memory is not None else available_memory()
     where = "--max-memory" if max_memory is not None else "available on this machine"
