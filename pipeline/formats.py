@@ -153,9 +153,7 @@ def write_vdb(final: Path, grids) -> Path:
         # string length from past its end and built a 1.4 GB "grid type" (5.5 GB resident, 30 s)
         short = vdb_cut_short(tmp)
         if short:
-            free = shutil.disk_usage(tmp.parent).free / 2 ** 20
-            raise OSError(f"{final}: the OpenVDB file written could not be read back: {short}; "
-                          f"{free:.1f} MB left on its disk")
+            raise OSError(f"{final}: the OpenVDB file written could not be read back: {short}; {disk_left(tmp)}")
         try:
             names = [g["name"] for g in vdb.readAllGridMetadata(str(tmp))]
         except Exception as exc:          # OpenVDB's IoError and friends carry no common base
@@ -164,6 +162,12 @@ def write_vdb(final: Path, grids) -> Path:
         if sorted(names) != sorted(g.name for g in grids):
             raise OSError(f"{final}: the OpenVDB file written holds {names}, not {[g.name for g in grids]}")
     return final
+
+
+def disk_left(path: Path) -> str:
+    """How much room the disk holding `path` has left, for the message of a file written that
+    did not read back whole (a full disk is the usual reason)."""
+    return f"{shutil.disk_usage(path.parent).free / 2 ** 20:.1f} MB left on its disk"
 
 
 def vdb_cut_short(path: Path) -> str | None:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import atexit
 import logging
 import os
-import shutil
 import threading
 from pathlib import Path
 
@@ -18,7 +17,7 @@ import numpy as np
 
 from ..cache import atomic_path
 from ..errors import StageError
-from ..formats import read_frame, read_level_set, read_mesh, read_points
+from ..formats import disk_left, read_frame, read_level_set, read_mesh, read_points
 
 log = logging.getLogger("sphshot")
 
@@ -642,10 +641,8 @@ def write_movie(final: Path, images: list[Path], fps: float) -> Path:
         except RuntimeError:
             frames = None
         if frames != len(images):
-            free = shutil.disk_usage(tmp.parent).free / 2 ** 20
             got = "could not be read" if frames is None else f"holds {frames} frames"
-            raise OSError(f"{final}: the movie written {got}, not {len(images)} frames; {free:.1f} MB left on "
-                          f"its disk")
+            raise OSError(f"{final}: the movie written {got}, not {len(images)} frames; {disk_left(tmp)}")
     return final
 
 
