@@ -104,6 +104,9 @@ def child(args) -> None:
     if report:
         result["avg_pressure_iters"] = round(report["density_iterations"], 2)
         result["avg_divergence_iters"] = round(report["divergence_iterations"], 2)
+        if report["viscosity_steps"]:
+            result["implicit_viscosity_steps"] = report["viscosity_steps"]
+            result["avg_viscosity_iters"] = round(report["viscosity_iterations"], 2)
     if args.phases:
         result["phase_s"] = {k: round(v, 2) for k, v in s.timer.totals.items()}
     if args.device_bytes:
@@ -189,7 +192,8 @@ def main() -> None:
             "sim_s_per_wall_s", "init_s", "peak_rss_mb", "avg_pressure_iters", "avg_divergence_iters",
             "device_bytes_per_particle"]
     for r in rows:
-        print(f"{r['solver']:22s} " + " ".join(f"{k}={r.get(k)}" for k in keys)
+        extra = [k for k in ("implicit_viscosity_steps", "avg_viscosity_iters") if k in r]
+        print(f"{r['solver']:22s} " + " ".join(f"{k}={r.get(k)}" for k in keys + extra)
               + (f" phases={r['phase_s']}" if "phase_s" in r else ""))
     ours = [r for r in rows if r["solver"].startswith("sphshot")]
     for ref in (r for r in rows if r["solver"].startswith("splishsplash")):

@@ -32,7 +32,7 @@ def read_closed_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
         with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
             mesh = meshio.read(path)
     except (Exception, SystemExit) as exc:   # an unknown format, or a bad file of a known one
-        why = " ".join(chatter.getvalue().split()) or f"{exc.__class__.__name__}: {exc}"
+        why = " ".join(chatter.getvalue().split()) or _reason(exc)
         raise MeshFileError(f"cannot read mesh file {path!r}: {why[:200]}") from None
     faces = []
     for block in mesh.cells:
@@ -57,6 +57,17 @@ def read_closed_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     verts.flags.writeable = False
     tris.flags.writeable = False
     return verts, tris
+
+
+def _reason(exc: BaseException) -> str:
+    """A reader's exception as the user's reason. meshio parses a known format's numbers with
+    NumPy, whose ValueErrors (a number cut in half, a last line with too few values) speak of
+    arrays; they mean the file is malformed or cut short."""
+    text = str(exc)
+    if isinstance(exc, ValueError) and ("inhomogeneous" in text or "could not convert" in text):
+        detail = "rows of different lengths" if "inhomogeneous" in text else text
+        return f"it is malformed or cut short ({detail}); is the file complete?"
+    return f"{exc.__class__.__name__}: {text}"
 
 
 def count_open_edges(tris: np.ndarray) -> int:

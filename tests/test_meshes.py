@@ -68,6 +68,11 @@ def bad_mesh(tmp_path, kind):
     if kind == "garbage":
         (tmp_path / "junk.ply").write_bytes(b"this is not a ply file\n")
         return "junk.ply"
+    if kind in ("cut", "cut_row"):           # a copy that stopped mid-number, or mid-line
+        text = write_cube(tmp_path / "cube.obj").read_text()
+        last_vertex = text.rindex("\nv ") + 1
+        (tmp_path / f"{kind}.obj").write_text(text[:last_vertex] + ("v 1.0 1.0 -" if kind == "cut" else "v 1.0 1.0"))
+        return f"{kind}.obj"
     if kind == "lines":                      # cells, but no faces
         meshio.write(tmp_path / "lines.vtu", meshio.Mesh(np.eye(3), [("line", np.array([[0, 1], [1, 2]]))]))
         return "lines.vtu"
@@ -79,6 +84,8 @@ def bad_mesh(tmp_path, kind):
     ("open", "is not closed (4 edges belong to one face only)"),
     ("garbage", "colliders[0].path: cannot read mesh file"),
     ("lines", "has no triangles or quads"),
+    ("cut", "cannot read mesh file '{dir}/cut.obj': it is malformed or cut short (could not convert"),
+    ("cut_row", "cannot read mesh file '{dir}/cut_row.obj': it is malformed or cut short (rows of different"),
 ])
 @pytest.mark.parametrize("command", ["validate", "run"])
 def test_bad_mesh_file_is_one_clear_line(tmp_path, capsys, kind, expect, command):
