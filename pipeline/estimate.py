@@ -16,6 +16,11 @@ Figures per unit, measured (bench/RESULTS.md, eleventh session):
   over BASE_BYTES and 120 a pixel. The example end to end in one process peaked at 738 MB
   (sim alone 215, surface alone 408: OpenVDB, scikit-image and the meshes' arrays about 110 MB
   over Python and Taichi, counted as SURFACE_BYTES);
+- what every run holds: Python, NumPy and the pipeline (BASE_BYTES), and Taichi once a sim or
+  surface stage has initialised it (TAICHI_BYTES; the render stage never loads it). Twenty-third
+  session, the example's 4 frames of one stage a process: sim 177, surface 380, render 553 MB
+  resident (960x540), against 308, 426 and 609 MB estimated; until then the render alone was
+  charged for Taichi as well (809 MB);
 - disk (the example jobs' full runs, twenty-second session): a sim frame is 41-43 bytes a
   particle (position, velocity, density, pressure, id, fluid), a checkpoint 65. A surface frame
   grows with the water's surface, not its particles: over a whole shot 296-329 bytes a frame per
@@ -40,7 +45,8 @@ SIM_BYTES = 1_200              # per particle: device arrays and host copies
 NODE_BYTES = 26                # per surfacing grid node, at the peak of one frame
 NODES_PER_CELL_VOLUME = 1.9    # blocks reach a support beyond the fluid: 36 nodes/particle at 0.75 r
 VOXEL_BYTES = 12               # per collider distance-grid voxel while OpenVDB builds it
-BASE_BYTES = 300 * 2 ** 20     # Python, NumPy, Taichi loaded
+BASE_BYTES = 100 * 2 ** 20     # Python, NumPy and the pipeline loaded
+TAICHI_BYTES = 200 * 2 ** 20   # Taichi loaded and initialised (the sim and surface stages)
 RENDER_BYTES = 450 * 2 ** 20   # VTK, PyVista and Mesa loaded, while rendering
 SURFACE_BYTES = 120 * 2 ** 20  # OpenVDB and scikit-image loaded, while surfacing
 PIXEL_BYTES = 120              # per output pixel, while rendering
@@ -65,14 +71,16 @@ class Estimate:
         return self.memory_for(STAGES)
 
     def parts(self, stages) -> dict[str, float]:
-        """What each of these stages holds at its peak beyond BASE_BYTES (the colliders' grids
-        are built as the sim starts)."""
+        """What each of these stages holds at its peak beyond BASE_BYTES and Taichi (the
+        colliders' grids are built as the sim starts)."""
         every = {"sim": self.sim + self.colliders, "surface": self.surface, "render": self.render}
         return {stage: every[stage] for stage in stages}
 
     def memory_for(self, stages) -> float:
-        """The peak of a run of these stages: they run one after another."""
-        return BASE_BYTES + max(self.parts(stages).values(), default=0.0)
+        """The peak of a run of these stages: they run one after another, in one process that
+        keeps Taichi once a stage has loaded it."""
+        taichi = TAICHI_BYTES if {"sim", "surface"} & set(stages) else 0.0
+        return BASE_BYTES + taichi + max(self.parts(stages).values(), default=0.0)
 
     def line(self) -> str:
         return (f"{_count(self.particles)} particles; memory {_gb(self.memory)} (sim {_gb(self.sim)}, "

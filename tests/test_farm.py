@@ -379,7 +379,7 @@ print(f"{1000 + n};cluster")
 def test_exports_ask_each_stage_for_its_estimated_memory(job_copy, tmp_path):
     """Without --mem each exported stage asks for the memory the pre-flight estimates for a task
     of that stage alone, in 256 MB steps (the small shot: the render's VTK and Mesa make it the
-    largest; measured for the example: sim 215 MB, surface 408, render 573 resident), so a
+    largest; measured for the example: sim 177-215 MB, surface 380-408, render 553-573 resident), so a
     farm's default per-task memory cannot starve a render and a sim's gigabytes are not booked
     for every render task. In the SLURM script each job's --mem comes before the site's options,
     which win."""

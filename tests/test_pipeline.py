@@ -584,7 +584,8 @@ def test_a_full_disk_is_one_line_and_publishes_nothing(job_copy, monkeypatch, ca
 
     import pyopenvdb
 
-    from pipeline import formats
+    import pipeline.stages.sim    # noqa: F401  before the patches below: imported under them, it
+    from pipeline import formats  # would bind the failing writer for the rest of the session
     from pipeline.cli import main
 
     # a writer that "succeeds" but leaves a cut-short file
