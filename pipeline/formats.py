@@ -12,15 +12,21 @@
   pipeline/native/vdb_points.cpp (pyopenvdb 10 has no point grids).
 
 Every writer publishes atomically (cache.atomic_path): a file exists under its final name only
-once it is complete. The user's input meshes (mesh colliders) are read by pipeline/meshes.py.
+once it is complete. Every writer is reproducible: the same content gives the same bytes
+(meshio's time of writing is blanked from PLY and OBJ headers, and an OpenVDB file's UUID is
+derived from the rest of the file instead of drawn at random), so a frame computed again from
+the same input leaves the frames made from it valid (cache.check_file compares digests). The
+user's input meshes (mesh colliders) are read by pipeline/meshes.py.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import shutil
 import subprocess
 import sys
+import uuid
 from pathlib import Path
 
 import h5py
@@ -88,7 +94,20 @@ def write_mesh(final: Path, mesh: Mesh, fmt: str) -> Path:
         pd = {"Normals": mesh.normals, "velocity": mesh.velocity}
     with atomic_path(final) as tmp:
         meshio.write(str(tmp), meshio.Mesh(mesh.points, cells, point_data=pd), file_format=fmt)
+        _blank_write_time(tmp)
     return final
+
+
+def _blank_write_time(path: Path) -> None:
+    """meshio heads a PLY or OBJ file with "Created by meshio vX, <the time of writing>": the
+    time is overwritten with spaces in place (the header keeps its length), so the same mesh
+    gives the same bytes."""
+    with open(path, "r+b") as f:
+        head = f.read(512)
+        m = re.search(rb"Created by meshio v[^,\n]*(, [0-9T:.\-]+)\n", head)
+        if m:
+            f.seek(m.start(1))
+            f.write(b" " * (m.end(1) - m.start(1)))
 
 
 def write_points(final: Path, position: np.ndarray, velocity: np.ndarray, radius: float,
@@ -107,6 +126,7 @@ def write_points(final: Path, position: np.ndarray, velocity: np.ndarray, radius
     with atomic_path(final) as tmp:
         meshio.write(str(tmp), meshio.Mesh(np.asarray(position, np.float32).reshape(-1, 3), cells, point_data=pd),
                      file_format="ply")
+        _blank_write_time(tmp)
     return final
 
 
@@ -154,6 +174,7 @@ def write_vdb(final: Path, grids) -> Path:
         short = vdb_cut_short(tmp)
         if short:
             raise OSError(f"{final}: the OpenVDB file written could not be read back: {short}; {disk_left(tmp)}")
+        content_uuid(tmp)
         try:
             names = [g["name"] for g in vdb.readAllGridMetadata(str(tmp))]
         except Exception as exc:          # OpenVDB's IoError and friends carry no common base
@@ -162,6 +183,22 @@ def write_vdb(final: Path, grids) -> Path:
         if sorted(names) != sorted(g.name for g in grids):
             raise OSError(f"{final}: the OpenVDB file written holds {names}, not {[g.name for g in grids]}")
     return final
+
+
+VDB_UUID = slice(21, 57)     # the UUID's bytes in an OpenVDB file's header (see vdb_cut_short)
+
+
+def content_uuid(path: Path) -> None:
+    """Replace the random UUID OpenVDB writes into a file's header with one derived from the
+    rest of the file (blake2b, as a UUID string): the same grids give the same bytes, and two
+    files share a UUID only where their content is the same, which is what readers that cache
+    by UUID (OpenVDB's delayed loading, Houdini) take it to mean. The file's layout must have
+    been checked (vdb_cut_short)."""
+    data = path.read_bytes()
+    digest = hashlib.blake2b(data[:VDB_UUID.start] + data[VDB_UUID.stop:], digest_size=16).digest()
+    with open(path, "r+b") as f:
+        f.seek(VDB_UUID.start)
+        f.write(str(uuid.UUID(bytes=digest)).encode())
 
 
 def disk_left(path: Path) -> str:
@@ -260,6 +297,7 @@ def write_vdb_points(final: Path, position: np.ndarray, velocity: np.ndarray, ra
         if back["count"] != n or abs(back["fluid_sum"] - float(arrays[3].sum())) > 0.5:
             raise OSError(f"{final}: the points written read back as {back['count']} (fluid indices summing to "
                           f"{back['fluid_sum']:g}), not {n} ({int(arrays[3].sum())})")
+        content_uuid(tmp)             # (the tool checked the layout before reading it back)
     return final
 
 
