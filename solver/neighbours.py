@@ -90,9 +90,36 @@ def scan_add_pass(start: T, block_sum: T, n: ti.i32):
 
 @ti.func
 def scatter_pass(cell: T, start: T, fill: T, order: T):
+    """order[start[c] ...]: each cell's particles, in the order the threads' atomic adds happen
+    to come (sort_runs_pass then fixes it)."""
     for i in cell:
         c = cell[i]
         order[start[c] + ti.atomic_add(fill[c], 1)] = i
+
+
+@ti.func
+def sort_run(a: T, s0, n):
+    """a[s0 : s0 + n] in increasing order, in place (insertion sort, for the short runs of a
+    counting sort's cells)."""
+    for k in range(1, n):
+        x = a[s0 + k]
+        b = k - 1
+        while b >= 0:
+            if a[s0 + b] <= x:
+                break
+            a[s0 + b + 1] = a[s0 + b]
+            b -= 1
+        a[s0 + b + 1] = x
+
+
+@ti.func
+def sort_runs_pass(start: T, count: T, order: T):
+    """Each cell's run of `order` in increasing index: the particles of a cell keep their
+    previous order, whatever order the scatter's atomics came in, so every later sum adds in
+    the same order on every run, with any number of threads. (Without it two 2-thread runs of
+    the example parted at frame 8 and were centimetres apart by frame 10.)"""
+    for c in count:
+        sort_run(order, start[c], count[c])
 
 
 @ti.func
@@ -154,8 +181,9 @@ def exclusive_scan(count, start, n: int, buffer) -> None:
 
 
 @ti.kernel
-def k_scatter(cell: I1, start: I1, fill: I1, order: I1):
+def k_scatter(cell: I1, start: I1, count: I1, fill: I1, order: I1):
     scatter_pass(cell, start, fill, order)
+    sort_runs_pass(start, count, order)
 
 
 @ti.kernel
@@ -217,7 +245,7 @@ def k_rebuild(position: V3, ref: V3, velocity: V3, acceleration: V3, fluid: I1, 
     sort into the *_o arrays, then k_neighbours' lists at the sorted reference positions. With
     `from_position` the reference positions are the current ones (ref = position, then sort).
     The cell scan has two levels of SCAN_BLOCK-cell runs and a serial scan of the top level's
-    totals (exact: integers)."""
+    totals (exact: integers); each cell's particles keep their previous order (sort_runs_pass)."""
     n, nb, nb2 = count.shape[0], sums.shape[0], sums2.shape[0]
     source = ti.static(position if from_position else ref)      # the reference positions
     clear_pass(count, fill)
@@ -228,6 +256,7 @@ def k_rebuild(position: V3, ref: V3, velocity: V3, acceleration: V3, fluid: I1, 
     scan_add_pass(sums, sums2, nb)
     scan_add_pass(start, sums, n)
     scatter_pass(cell, start, fill, order)
+    sort_runs_pass(start, count, order)
     gather_pass(order, position, source, velocity, acceleration, fluid, id,
                 position_o, ref_o, velocity_o, acceleration_o, fluid_o, id_o)
     list_pass(ref_o, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest, at)

@@ -185,7 +185,7 @@ class SPHSolver:
         k_clear2(self.count, self.fill)
         k_count(self.ref, self.cell, self.count, self.origin, self.inv_cell, self.dims)
         exclusive_scan(self.count, self.start, self.n_cells, self._scan_buffer)
-        k_scatter(self.cell, self.start, self.fill, self.order)
+        k_scatter(self.cell, self.start, self.count, self.fill, self.order)
         k_gather(self.order, self.position, self.ref, self.velocity, self.acceleration, self.fluid, self.id,
                  self.position_b, self.ref_b, self.velocity_b, self.acceleration_b, self.fluid_b, self.id_b)
         self._swap_sorted()

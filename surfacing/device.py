@@ -35,21 +35,6 @@ def on_cuda() -> bool:
     return current_arch() == "cuda"
 
 
-@ti.func
-def sort_run(a: ti.template(), s0, n):
-    """a[s0 : s0 + n] in increasing order, in place (insertion sort: for the short runs the
-    surfacer sorts so that its float sums add in a fixed order on every run and backend)."""
-    for k in range(1, n):
-        x = a[s0 + k]
-        b = k - 1
-        while b >= 0:
-            if a[s0 + b] <= x:
-                break
-            a[s0 + b + 1] = a[s0 + b]
-            b -= 1
-        a[s0 + b + 1] = x
-
-
 def _shape(shape) -> tuple:
     return tuple(max(int(s), 1) for s in (shape if isinstance(shape, tuple) else (shape,)))
 

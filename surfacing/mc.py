@@ -22,6 +22,7 @@ vertex_normals, for any triangle mesh, is here too, in parallel and deterministi
 import numpy as np
 import taichi as ti
 
+from solver.neighbours import sort_run
 from solver.types import F2, I1, V3
 
 from . import device as D
@@ -194,7 +195,7 @@ def k_gather_normals(start: I1, count: I1, incident: I1, normal: V3, out: V3):
     same as one thread adding face after face."""
     for v in out:
         s0, n = start[v], count[v]
-        D.sort_run(incident, s0, n)
+        sort_run(incident, s0, n)
         acc = ti.math.vec3(0.0)
         for a in range(n):
             acc += normal[incident[s0 + a]]

@@ -33,7 +33,7 @@ import numpy as np
 import taichi as ti
 
 from solver import kernels as K
-from solver.neighbours import scatter_pass
+from solver.neighbours import scatter_pass, sort_runs_pass
 from solver.types import F1, I1, V3, ivec3, vec3
 
 from . import anisotropy as A, device as D
@@ -254,8 +254,7 @@ def k_place(key: I1, start: I1, fill: I1, order: I1):
 def k_sort_runs(start: I1, count: I1, order: I1):
     """Each cube's run of `order` in increasing particle index (insertion sort: a run is a
     cube's few dozen particles), so that the splat adds in the same order on every run."""
-    for k in count:
-        D.sort_run(order, start[k], count[k])
+    sort_runs_pass(start, count, order)
 
 
 @ti.kernel

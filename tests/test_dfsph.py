@@ -244,7 +244,7 @@ def test_surge_front_follows_martin_and_moyce():
     """A column a wide and 2a high (a = 0.1 m, 10 particles across) on a frictionless floor.
     The front leads the experiment, as SPH fronts do: the experiment's gate took time to lift.
     Measured +12, +18, +16, +13, +12, +16, +8, +8 % at the eight times (mirrored walls, one
-    thread; on two threads the last four move by 0.5 %; with the walls' tables it was +6 % to
+    thread, and since the twenty-third session the same on two; with the walls' tables it was +6 % to
     +15 %), so the bound is 20 % ahead and never behind by more than 2 %; the issue's 5 % is
     not met."""
     a, r = 0.1, 0.005
