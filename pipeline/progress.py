@@ -26,6 +26,7 @@ class Progress:
         self._tasks: dict[str, int] = {}
         self._totals: dict[str, int] = {}
         self._done: dict[str, int] = {}
+        self._found: dict[str, int] = {}        # frames found valid already (no file written)
         self._last: dict[str, float] = {}
         self._start: dict[str, float] = {}
         self._last_pct = -1
@@ -36,6 +37,7 @@ class Progress:
         """Start reporting; `totals` maps each stage with work to its frame count, in order."""
         self._totals = {s: n for s, n in totals.items() if n}
         self._done = {s: 0 for s in self._totals}
+        self._found = {s: 0 for s in self._totals}
         self._last_pct = -1
         self._t0 = time.perf_counter()
         self._last = {s: self._t0 for s in self._totals}
@@ -54,8 +56,12 @@ class Progress:
             self._percent()
 
     def frame_done(self, stage: str, frame: int, files=()) -> None:
+        """A frame of the stage is valid on disk: `files` written here, or none when it was
+        found valid (another worker's, or its upstream frame came out the same bytes)."""
         with self._lock:
             self._done[stage] = self._done.get(stage, 0) + 1
+            if not files:
+                self._found[stage] = self._found.get(stage, 0) + 1
             self._last[stage] = time.perf_counter()
             if self._bar is not None:
                 self._bar.update(self._tasks[stage], advance=1, description=f"{stage} {frame:04d}")
@@ -74,7 +80,9 @@ class Progress:
             # to its last frame, or to now when it finished none (it failed, or never started)
             last = self._last[stage] if self._done[stage] else now
             dt = max(0.0, last - self._start.get(stage, self._t0))
-            self.line(f"sphshot: {stage}: {self._done[stage]} frame(s) in {dt:.1f} s")
+            found = self._found.get(stage, 0)
+            self.line(f"sphshot: {stage}: {self._done[stage]} frame(s) in {dt:.1f} s"
+                      + (f" ({found} found valid already)" if found else ""))
         self._totals = {}
 
     def for_stage(self, stage: str) -> "StageProgress":
