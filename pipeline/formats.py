@@ -194,11 +194,14 @@ def content_uuid(path: Path) -> None:
     files share a UUID only where their content is the same, which is what readers that cache
     by UUID (OpenVDB's delayed loading, Houdini) take it to mean. The file's layout must have
     been checked (vdb_cut_short)."""
-    data = path.read_bytes()
-    digest = hashlib.blake2b(data[:VDB_UUID.start] + data[VDB_UUID.stop:], digest_size=16).digest()
+    h = hashlib.blake2b(digest_size=16)
     with open(path, "r+b") as f:
+        h.update(f.read(VDB_UUID.start))
+        f.seek(VDB_UUID.stop)
+        for piece in iter(lambda: f.read(1 << 20), b""):       # a showcase frame is ~100 MB
+            h.update(piece)
         f.seek(VDB_UUID.start)
-        f.write(str(uuid.UUID(bytes=digest)).encode())
+        f.write(str(uuid.UUID(bytes=h.digest())).encode())
 
 
 def disk_left(path: Path) -> str:
