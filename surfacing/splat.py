@@ -33,7 +33,7 @@ import numpy as np
 import taichi as ti
 
 from solver import kernels as K
-from solver.neighbours import scatter_pass, sort_runs_pass
+from solver.neighbours import k_scatter
 from solver.types import F1, I1, V3, ivec3, vec3
 
 from . import anisotropy as A, device as D
@@ -244,20 +244,6 @@ def k_cube_keys(pos: V3, origin: vec3, inv: ti.f32, dims: ivec3, half: ivec3, ke
 
 
 @ti.kernel
-def k_place(key: I1, start: I1, fill: I1, order: I1):
-    """order[start[key] ...]: each cube's particles (in no particular order yet): the
-    neighbour sort's scatter, with cubes for cells."""
-    scatter_pass(key, start, fill, order)
-
-
-@ti.kernel
-def k_sort_runs(start: I1, count: I1, order: I1):
-    """Each cube's run of `order` in increasing particle index (insertion sort: a run is a
-    cube's few dozen particles), so that the splat adds in the same order on every run."""
-    sort_runs_pass(start, count, order)
-
-
-@ti.kernel
 def k_take_v3(order: I1, src: V3, dst: V3):
     for s in order:
         dst[s] = src[order[s]]
@@ -317,8 +303,7 @@ def _order_by_key(key, count):
     keys = count.shape[0]
     start, _ = D.exclusive_scan(count, keys)
     order = D.empty(ti.i32, key.shape[0])
-    k_place(key, start, D.zeros(ti.i32, keys), order)
-    k_sort_runs(start, count, order)
+    k_scatter(key, start, count, D.zeros(ti.i32, keys), order)      # the neighbour sort's, with keys for cells
     return order, start, count
 
 
