@@ -568,6 +568,14 @@ def test_anisotropic_kernel_table_matches_numpy():
         np.testing.assert_allclose(table[i], want, atol=2e-4, err_msg=str(target))
 
 
+def pool_top(mesh) -> np.ndarray:
+    """The heights of the top-facing vertices over the middle of test_anisotropic_flattens_a_
+    jittered_pool's pool (0.2 x 0.06 x 0.2 m)."""
+    p, n = mesh.points, mesh.normals
+    mid = (np.abs(p[:, 0] - 0.1) < 0.05) & (np.abs(p[:, 2] - 0.1) < 0.05)
+    return p[mid & (n[:, 1] > 0.95) & (p[:, 1] > 0.03), 1]
+
+
 def test_anisotropic_flattens_a_jittered_pool():
     """A pool 6 particles deep: on the exact lattice both methods give a flat top (the top-facing
     vertices' heights span under 0.01 r). With every particle moved by 0.1 r (rms) at random, the
@@ -585,9 +593,7 @@ def test_anisotropic_flattens_a_jittered_pool():
     for method in ("isotropic", "anisotropic"):
         for name, pos in (("exact", pool), ("jittered", jittered)):
             _f, mesh, _p = surfaced(pos, method)
-            p, n = mesh.points, mesh.normals
-            mid = (np.abs(p[:, 0] - 0.1) < 0.05) & (np.abs(p[:, 2] - 0.1) < 0.05)
-            top = p[mid & (n[:, 1] > 0.95) & (p[:, 1] > 0.03), 1]
+            top = pool_top(mesh)
             assert len(top) > 300
             spread[method, name] = np.ptp(top) / R_PART, top.std() / R_PART
     assert spread["isotropic", "exact"][0] < 0.01 and spread["anisotropic", "exact"][0] < 0.01, spread
@@ -600,9 +606,7 @@ def test_anisotropic_flattens_a_jittered_pool():
     out = {}
     for name, kw in (("taubin", stage), ("first pass only", {**stage, "center_inflation": 0.0})):
         _f, mesh, poly = surfaced(jittered, "anisotropic", **kw)
-        p, n = mesh.points, mesh.normals
-        mid = (np.abs(p[:, 0] - 0.1) < 0.05) & (np.abs(p[:, 2] - 0.1) < 0.05)
-        top = p[mid & (n[:, 1] > 0.95) & (p[:, 1] > 0.03), 1]
+        top = pool_top(mesh)
         out[name] = np.ptp(top) / R_PART, top.std() / R_PART, abs(poly.volume) / abs(exact.volume)
     span, rms, vol = out["taubin"]
     assert span < 0.13 and rms < 0.021 and abs(vol - 1) < 0.015, out
@@ -615,9 +619,7 @@ def test_anisotropic_flattens_a_jittered_pool():
     spans = {}
     for method, kw in (("anisotropic", stage), ("isotropic", {})):
         _f, mesh, poly = surfaced(jittered, method, smoothing_iterations=passes, **kw)
-        p, n = mesh.points, mesh.normals
-        mid = (np.abs(p[:, 0] - 0.1) < 0.05) & (np.abs(p[:, 2] - 0.1) < 0.05)
-        spans[method] = np.ptp(p[mid & (n[:, 1] > 0.95) & (p[:, 1] > 0.03), 1]) / R_PART
+        spans[method] = np.ptp(pool_top(mesh)) / R_PART
     assert spans["anisotropic"] < 0.1 < spans["isotropic"], spans
 
 
