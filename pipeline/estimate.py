@@ -39,6 +39,8 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+from solver.lattice import Domain, site_count
+
 from .stages import STAGES
 
 SIM_BYTES = 1_200              # per particle: device arrays and host copies
@@ -92,13 +94,13 @@ def estimate(spec) -> Estimate:
     r = spec.sim.particle_radius
     d = 2.0 * r
     particles = area = 0.0
-    for f in spec.fluids:
-        for b in f.blocks:
-            # the fill's lattice: floor(extent / 2r) a side, at least one (solver/fill.py)
-            particles += math.prod(max(math.floor(e / d + 1e-6), 1) if e / d < 1e15 else e / d
-                                   for e in (hi - lo for lo, hi in zip(b.min, b.max)))
-            x, y, z = (max(hi - lo, d) for lo, hi in zip(b.min, b.max))
-            area += 2.0 * (x * y + y * z + x * z)
+    blocks = [b for f in spec.fluids for b in f.blocks]
+    domain = Domain(spec.domain.min, spec.domain.max, spec.domain.open, d, spec.sim.fill_lattice,
+                    [(b.min, b.max) for b in blocks])
+    for bi, b in enumerate(blocks):
+        particles += site_count(domain, bi)                         # solver/fill.py's count
+        x, y, z = (max(hi - lo, d) for lo, hi in zip(b.min, b.max))
+        area += 2.0 * (x * y + y * z + x * z)
     cell = spec.surface_cell_m
     nodes = particles * (d / cell) ** 3 * NODES_PER_CELL_VOLUME
     voxels = 0.0

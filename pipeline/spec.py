@@ -102,6 +102,9 @@ class Sim(Strict):
     surface_tension_model: Literal["mueller", "akinci"] = "mueller"
     max_density_ratio: Annotated[float, Field(gt=1)] = 1.5  # instability guard on rho/rho0
     kernels: Kernels = Kernels()
+    # the blocks' starting lattice (solver/lattice.py): "fcc" (dfsph's default) starts no rows
+    # that a collapsing column keeps as ribs; "cubic" (wcsph's, the only one it takes)
+    fill: Literal["fcc", "cubic"] | None = None
 
     @model_validator(mode="after")
     def _one_kernel_for_dfsph(self):
@@ -117,6 +120,18 @@ class Sim(Strict):
         if self.surface_tension_model == "akinci" and self.solver != "dfsph":
             raise ValueError("surface_tension_model: \"akinci\" needs solver = \"dfsph\"")
         return self
+
+    @model_validator(mode="after")
+    def _fcc_needs_dfsph(self):
+        if self.fill == "fcc" and self.solver != "dfsph":
+            raise ValueError("fill: \"fcc\" needs solver = \"dfsph\" (wcsph's wall samples and hydrostatic "
+                             "start are built for the \"cubic\" lattice)")
+        return self
+
+    @property
+    def fill_lattice(self) -> str:
+        """The fill's lattice: as given, else fcc for dfsph and cubic for wcsph."""
+        return self.fill or ("fcc" if self.solver == "dfsph" else "cubic")
 
     @property
     def density_kernel(self) -> str:

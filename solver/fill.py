@@ -1,4 +1,4 @@
-"""The initial particles: fluid blocks filled on a cubic lattice of spacing 2r."""
+"""The initial particles: fluid blocks filled on the lattice of solver.lattice, one particle per (2r)^3."""
 from __future__ import annotations
 
 from typing import Iterable
@@ -7,12 +7,15 @@ import numpy as np
 
 from .boundaries import collider_clearance
 from .errors import NoParticles
+from .lattice import Domain, block_sites
 from .params import F_B, F_RHO0, Block, SolverParams
 
 
-def fill_blocks(params: SolverParams, blocks: Iterable[Block], settle: bool = True,
+def fill_blocks(params: SolverParams, blocks: Iterable[Block] | None = None, settle: bool = True,
                 compressible: bool = False) -> dict[str, np.ndarray]:
-    """Initial particles: each block filled on a cubic lattice of spacing 2r, centred in it.
+    """Initial particles: each block filled on `params.lattice` (solver.lattice: the sites of one
+    face-centred cubic lattice shared by all blocks, or a cubic lattice of spacing 2r centred in
+    each block), one particle per (2r)^3.
 
     With `settle` (what a shot uses), lattice sites closer than one particle radius to a
     collider's solid side (inside an obstacle, outside a container) are left empty: blocks may
@@ -30,13 +33,15 @@ def fill_blocks(params: SolverParams, blocks: Iterable[Block], settle: bool = Tr
     d = params.spacing
     g = np.array(params.gravity, np.float64)
     gnorm = float(np.linalg.norm(g))
+    blocks = list(params.blocks if blocks is None else blocks)
+    if params.lattice == "fcc" and tuple(blocks) != params.blocks:
+        raise ValueError("an fcc fill fills the blocks its lattice was fitted to: pass params.blocks")
+    domain = params.fill_domain if params.lattice == "fcc" else Domain(
+        params.domain_min, params.domain_max, params.open_faces, d, params.lattice, [(b.min, b.max) for b in blocks])
     position, velocity, fluid = [], [], []
-    for b in blocks:
+    for bi, b in enumerate(blocks):
         lo, hi = np.array(b.min), np.array(b.max)
-        n = np.maximum(np.floor((hi - lo) / d + 1e-6).astype(int), 1)
-        start = lo + 0.5 * ((hi - lo) - (n - 1) * d)
-        axes = [start[k] + d * np.arange(n[k]) for k in range(3)]
-        p = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        p = block_sites(domain, bi)
         if settle and compressible and gnorm > 0:
             p = _hydrostatic(p, lo, hi, -g / gnorm, gnorm, params.fluid_table[b.fluid], params.gamma)
         position.append(p)

@@ -11,6 +11,7 @@ from functools import cached_property
 import numpy as np
 
 from . import kernels as K
+from .lattice import Domain
 from .meshsdf import SDFGrid
 
 SPHERE, BOX, CAPSULE, MESH = 0, 1, 2, 3
@@ -76,10 +77,13 @@ class SolverParams:
     surface_tension_model: str = "mueller"      # "mueller" (color field) or "akinci" (2013; DFSPH)
     density_kernel: str = "poly6"
     pressure_kernel: str = "spiky"
+    lattice: str = "cubic"                      # the fill's lattice (solver.lattice): "cubic" or "fcc"
+    blocks: tuple[Block, ...] = ()              # the fluid blocks filled ("fcc": the lattice fits them)
 
     @property
     def spacing(self) -> float:
-        """Fill lattice spacing, 2 particle radii."""
+        """The cubic fill lattice's spacing, 2 particle radii: one particle per spacing^3 on
+        either lattice."""
         return 2.0 * self.particle_radius
 
     @property
@@ -98,20 +102,38 @@ class SolverParams:
     @cached_property
     def lattice_density(self) -> float:
         """Number density sum_j W of the fill lattice: the rest state."""
-        return K.lattice_number_density(self.density_kind, self.h, self.spacing)
+        return K.lattice_number_density(self.density_kind, self.h, self.spacing, self.lattice,
+                                        self.fill_domain.step)
+
+    @cached_property
+    def fill_domain(self) -> Domain:
+        """The fill's lattice over the domain, fitted to `blocks` (solver.lattice)."""
+        return Domain(self.domain_min, self.domain_max, self.open_faces, self.spacing, self.lattice,
+                      [(b.min, b.max) for b in self.blocks])
 
     @cached_property
     def grad_scale(self) -> float:
-        """1 / the pressure kernel gradient's first moment on the lattice (see kernels)."""
-        return 1.0 / K.lattice_gradient_moment(self.pressure_kind, self.h, self.spacing, self.lattice_density)
+        """1 / the pressure kernel gradient's first moment on the cubic lattice (see kernels; WCSPH,
+        which fills only that lattice)."""
+        return 1.0 / K.lattice_gradient_moment(self.pressure_kind, self.h, self.spacing,
+                                               K.lattice_number_density(self.density_kind, self.h, self.spacing))
+
+    @cached_property
+    def viscous_scale(self) -> float:
+        """1 / Morris's viscous term's moment on the fill lattice (kernels.lattice_viscous_moment):
+        with it the term reads nu lap v there, on either lattice."""
+        return 1.0 / K.lattice_viscous_moment(self.pressure_kind, self.h, self.spacing, self.lattice,
+                                              self.fill_domain.step)
 
     @cached_property
     def fluid_table(self) -> np.ndarray:
-        """(F, 7) float32: mass, rho0, B, mu, sigma, eta, xsph (columns F_*)."""
+        """(F, 7) float32: mass, rho0, B, mu, sigma, eta, xsph (columns F_*). eta is the dynamic
+        viscosity times `viscous_scale`, which every use of it (Morris's term, the walls' no-slip
+        pull, the explicit limit) takes."""
         c = self.speed_of_sound
         return np.array([[f.rest_density / self.lattice_density, f.rest_density,
                           f.rest_density * c * c / self.gamma, f.viscosity, f.surface_tension,
-                          f.dynamic_viscosity, f.xsph]
+                          f.dynamic_viscosity * self.viscous_scale, f.xsph]
                          for f in self.fluids], dtype=np.float32)
 
     @cached_property

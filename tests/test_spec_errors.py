@@ -88,6 +88,9 @@ CORPUS = [
     # 16 GB in 40 s; 1e-300 was a traceback)
     ("too-many-particles", GOOD, ["--set", "sim.particle_radius=0.0002"],
      "over the"),
+    ("fcc-needs-dfsph", GOOD, ["--set", 'sim.solver="wcsph"', "--set", 'sim.fill="fcc"'],
+     'sim: fill: "fcc" needs solver = "dfsph"'),
+    ("unknown-fill", GOOD, ["--set", 'sim.fill="hex"'], "sim.fill: expected 'fcc' or 'cubic', got 'hex'"),
     ("absurd-radius", GOOD, ["--set", "sim.particle_radius=1e-300"],
      "the shot needs over 1e15 particles"),
     ("max-memory-below-the-shot", GOOD, ["--set", "sim.particle_radius=0.001", "--max-memory", "4"],
@@ -158,7 +161,7 @@ def test_estimate_counts_the_fill_and_validate_prints_it(tmp_path, capsys):
     job.write_text(GOOD)
     assert main(["validate", str(job)]) == 0
     out = capsys.readouterr().out
-    assert "estimate: about 490 particles; memory about" in out, out
+    assert "estimate: about 525 particles; memory about" in out, out
 
 
 def test_corpus_is_large_enough():

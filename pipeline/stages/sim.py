@@ -62,7 +62,7 @@ def solver_params(spec) -> SolverParams:
         colliders=tuple(colliders), gamma=sim.gamma, cfl=sim.cfl, max_dt=sim.max_dt,
         surface_threshold=sim.surface_threshold, surface_tension_model=sim.surface_tension_model,
         density_kernel=sim.density_kernel,
-        pressure_kernel=sim.pressure_kernel)
+        pressure_kernel=sim.pressure_kernel, lattice=sim.fill_lattice, blocks=tuple(fluid_blocks(spec)))
 
 
 def fluid(spec, fi: int) -> Fluid:
