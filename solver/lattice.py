@@ -65,15 +65,15 @@ class Domain:
             members = [i for i, ci in enumerate(self.cluster) if ci == c]
             lo = np.min([self.blocks[i][0] for i in members], axis=0)
             hi = np.max([self.blocks[i][1] for i in members], axis=0)
-            origin = np.empty(3)
+            origin = self.lo + 0.5 * self.step
             for k in range(3):
-                if any(touch_lo[i][k] for i in members) or not any(touch_hi[i][k] for i in members):
-                    origin[k] = self.lo[k] + 0.5 * self.step[k]
-                    if not any(touch_lo[i][k] for i in members) and (hi[k] - lo[k]) / self.step[k] < 1e15:
-                        n = max(round((hi[k] - lo[k]) / self.step[k]), 1)
-                        origin[k] = lo[k] + 0.5 * (hi[k] - lo[k] - (n - 1) * self.step[k])
-                else:
+                planes = (hi[k] - lo[k]) / self.step[k]
+                if any(touch_lo[i][k] for i in members) or planes >= 1e15:
+                    continue
+                if any(touch_hi[i][k] for i in members):
                     origin[k] = self.hi[k] - 0.5 * self.step[k]
+                else:
+                    origin[k] = lo[k] + 0.5 * (hi[k] - lo[k] - (max(round(planes), 1) - 1) * self.step[k])
             self.origins[c] = origin
 
     def origin_of(self, block: int) -> np.ndarray:
