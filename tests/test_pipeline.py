@@ -709,14 +709,19 @@ def test_a_disk_too_small_is_refused_and_one_filling_up_is_one_line(job_copy, tm
         while not paths.sim_frame(1).exists() and run.poll() is None and time.time() < deadline:
             time.sleep(0.02)
         filler = disk / "filler"
-        with open(filler, "wb") as fh:          # everything that is left
-            try:
+        try:
+            with open(filler, "wb") as fh:      # everything that is left (if any: opening fails on a full disk)
                 while True:
                     fh.write(b"\0" * 2 ** 16)
                     fh.flush()
-            except OSError:
-                pass
-        _out, err = run.communicate(timeout=300)
+        except OSError:
+            pass
+        try:
+            _out, err = run.communicate(timeout=300)
+        finally:
+            if run.poll() is None:              # never leave it writing to the disk, which then cannot unmount
+                run.kill()
+                run.wait()
         errors = [ln for ln in err.splitlines() if ln.startswith("sphshot: error")]
         assert run.returncode == 1 and len(errors) == 1 and "Traceback" not in err, err[:2000]
         assert len(errors[0]) < 400 and ("No space left on device" in errors[0] or "could not be read" in errors[0]), \
@@ -726,7 +731,7 @@ def test_a_disk_too_small_is_refused_and_one_filling_up_is_one_line(job_copy, tm
             sc = cache.ShotCache(spec, paths).scan(stage, spec.frames, verify=True)
             assert not sc.corrupt and not sc.stale, (stage, sc)
 
-        filler.unlink()
+        filler.unlink(missing_ok=True)
         sphshot("run", job, *args, check=True)
         from pipeline.estimate import estimate, free_disk
         assert estimate(spec).disk > free_disk(disk)
