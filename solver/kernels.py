@@ -184,9 +184,7 @@ def lattice_number_density(kind: int, h: float, spacing: float, lattice: str = "
     Setting each particle's mass to rho0 / this sum makes a particle inside a lattice-filled
     block start exactly at rest density.
     """
-    if steps is None:
-        steps = spacing * (FCC_PLANE if lattice == "fcc" else 1.0)
-    p = sites_near(steps, lattice, h)
+    p = _lattice_sites(spacing, lattice, steps, h)
     return float(w_np(kind, np.linalg.norm(p, axis=1), h).sum())
 
 
@@ -197,14 +195,19 @@ def lattice_viscous_moment(kind: int, h: float, spacing: float, lattice: str = "
     nu lap v on the lattice. The continuum value is 0.963 (the 0.01 h^2); the cubic lattice of
     spacing h / 2 gives 0.992, the fcc lattice of one particle per the same volume 0.941, so a
     shear wave on the fcc fill decayed 6-7 % slower than the analytic rate (tests/test_dfsph.py)."""
-    if steps is None:
-        steps = spacing * (FCC_PLANE if lattice == "fcc" else 1.0)
-    p = sites_near(steps, lattice, h)
+    p = _lattice_sites(spacing, lattice, steps, h)
     r = np.linalg.norm(p, axis=1)
     p, r = p[r > 0], r[r > 0]
-    density = float(w_np(kind, r, h).sum() + w_np(kind, 0.0, h))
     moment = -(dw_np(kind, r, h) * r / (r * r + 0.01 * h * h))[:, None] * p * p
-    return float(moment.sum(0).mean() / density)
+    return float(moment.sum(0).mean() / lattice_number_density(kind, h, spacing, lattice, steps))
+
+
+def _lattice_sites(spacing: float, lattice: str, steps, h: float) -> np.ndarray:
+    """The fill lattice's sites within h of one of them (solver.lattice): plane steps `steps`,
+    by default the cubic spacing or the fcc step of the same number density."""
+    if steps is None:
+        steps = spacing * (FCC_PLANE if lattice == "fcc" else 1.0)
+    return sites_near(steps, lattice, h)
 
 
 def lattice_gradient_moment(kind: int, h: float, spacing: float, number_density: float) -> float:
