@@ -358,13 +358,13 @@ def test_no_slip_walls_hold_a_viscous_flow_at_the_analytic_rate():
 
 # ---------------------------------------------------------------------------- surface tension
 def test_akinci_surface_tension_pulls_a_cube_into_a_drop_and_keeps_it():
-    """Without gravity, a 10 cm cube (20 particles a side) under Akinci et al. 2013's tension
+    """Without gravity, a 10 cm cube (r = 5 mm, 13 fcc planes a side) under Akinci et al. 2013's tension
     (gamma 0.5) is a ball by 0.2 s and stays one: max/rms radius about the centre is 1.57 for
     the cube, 1.29 for a ball, measured 1.31 at 0.2 s and 1.24 at 0.4 s; the farthest particle
     stays within 3 % of the radius of the ball of the particles' volume (6.4 cm: the fcc fill
     puts 1,099 particles of (2r)^3 in the 1 L cube; measured 1.010 and 0.953 of it). Müller's
-    color-field force (sigma 2) on the same
-    cube rounds it, then pushes surface particles off it: 1.63 and 8.2 cm at 0.4 s."""
+    color-field force (sigma 2) on the same cube rounds it, then pushes surface particles off
+    it: 1.63 and 8.2 cm at 0.4 s."""
     spec, params, s = dfsph(tiny_spec(((0.1, 0.1, 0.1), (0.2, 0.2, 0.2)), ((0, 0, 0), (0.3, 0.3, 0.3)),
                                       sim={"particle_radius": 0.005, "gravity": (0, 0, 0),
                                            "surface_tension_model": "akinci"},
