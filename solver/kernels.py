@@ -194,7 +194,7 @@ def lattice_viscous_moment(kind: int, h: float, spacing: float, lattice: str = "
     al. 1997's viscous term, sum_j V (x_ij . grad W_ij) / (r^2 + 0.01 h^2) 2 nu v_ij, reads
     nu lap v on the lattice. The continuum value is 0.963 (the 0.01 h^2); the cubic lattice of
     spacing h / 2 gives 0.992, the fcc lattice of one particle per the same volume 0.941, so a
-    shear wave on the fcc fill decayed 6-7 % slower than the analytic rate (tests/test_dfsph.py)."""
+    shear wave on the fcc fill decayed 6-7 % slower than on the cubic fill (tests/test_dfsph.py)."""
     p = _lattice_sites(spacing, lattice, steps, h)
     r = np.linalg.norm(p, axis=1)
     p, r = p[r > 0], r[r > 0]
