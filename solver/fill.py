@@ -36,7 +36,7 @@ def fill_blocks(params: SolverParams, blocks: Iterable[Block] | None = None, set
     blocks = list(params.blocks if blocks is None else blocks)
     if params.lattice == "fcc" and tuple(blocks) != params.blocks:
         raise ValueError("an fcc fill fills the blocks its lattice was fitted to: pass params.blocks")
-    domain = params.fill_domain if params.lattice == "fcc" else Domain(
+    domain = params.fill_domain if tuple(blocks) == params.blocks else Domain(     # cubic: any blocks
         params.domain_min, params.domain_max, params.open_faces, d, params.lattice, [(b.min, b.max) for b in blocks])
     position, velocity, fluid = [], [], []
     for bi, b in enumerate(blocks):
