@@ -787,7 +787,7 @@ def test_fill_leaves_colliders_empty(tmp_path):
 
 # --------------------------------------------------------------------------- determinism
 def test_a_sim_is_the_same_bytes_on_one_thread_or_two(job_copy):
-    """The example's first 7 frames (6,800 particles, DFSPH) on one thread and on two: the same
+    """The example's first 7 frames (6,873 particles, DFSPH) on one thread and on two: the same
     sim files, byte for byte, and so a shot resumed on a node with another core count carries on
     as it would have. Each cell's particles keep their previous order through the neighbour
     sort (neighbours.sort_runs_pass) whatever order the threads' atomic adds came in, and every
