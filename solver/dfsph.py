@@ -592,6 +592,7 @@ class DFSPHSolver(SPHSolver):
         k_scale(self.kappa_divergence, dt)
         self.counters["divergence_iterations"] += it
         self.counters["divergence_error"] = max(self.counters["divergence_error"], err * dt)
+        self.counters["divergence_capped"] += it >= self.max_iterations and err * dt > self.max_divergence_error
 
     def density_solve(self, dt: float) -> None:
         """Correct v* so the predicted number density is delta0 where compressed (step 6)."""
@@ -600,6 +601,7 @@ class DFSPHSolver(SPHSolver):
         k_scale(self.kappa_density, dt * dt)
         self.counters["density_iterations"] += it
         self.counters["density_error"] = max(self.counters["density_error"], err)
+        self.counters["density_capped"] += it >= self.max_iterations and err > self.max_density_error
 
     def nonpressure(self) -> None:
         self.stats.fill(0.0)
@@ -696,19 +698,22 @@ class DFSPHSolver(SPHSolver):
 
     def reset_counters(self) -> None:
         self.counters = {"steps": 0, "density_iterations": 0, "divergence_iterations": 0,
-                         "density_error": 0.0, "divergence_error": 0.0,
+                         "density_error": 0.0, "divergence_error": 0.0, "density_capped": 0, "divergence_capped": 0,
                          "viscosity_steps": 0, "viscosity_iterations": 0, "viscosity_residual": 0.0}
 
     def frame_report(self) -> dict[str, float]:
         """Since the last call: mean iterations per step of both solves, and the largest final
         mean errors (density: relative compression; divergence: relative rate times dt); the
         steps that solved viscosity implicitly, their mean CG iterations and largest final
-        residual (relative to the first)."""
+        residual (relative to the first); and the steps whose solve stopped at max_iterations
+        with its error still above the bound (`*_capped_steps`)."""
         c, steps = self.counters, max(self.counters["steps"], 1)
         out = {"dfsph_steps": c["steps"], "density_iterations": c["density_iterations"] / steps,
                "divergence_iterations": c["divergence_iterations"] / steps,
                "density_error": c["density_error"], "divergence_error": c["divergence_error"],
                "max_density_error": self.max_density_error, "max_divergence_error": self.max_divergence_error,
+               "max_iterations": self.max_iterations,
+               "density_capped_steps": c["density_capped"], "divergence_capped_steps": c["divergence_capped"],
                "viscosity_steps": c["viscosity_steps"],
                "viscosity_iterations": c["viscosity_iterations"] / max(c["viscosity_steps"], 1),
                "viscosity_residual": c["viscosity_residual"]}

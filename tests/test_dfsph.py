@@ -163,6 +163,34 @@ def test_sweeps_gated_on_the_device_match_the_hosts_loop(monkeypatch):
     assert runs[0][0][1]["density_iterations"] > 2
 
 
+def test_a_solve_stopped_at_its_cap_is_counted_and_said(caplog):
+    """A step whose solve runs out of sweeps (sim.max_iterations) with its error still above the
+    bound is counted in the frame's report and said in one warning line naming the key. A small
+    column falling for 0.1 s with a bound of 0.001 %: one sweep a solve leaves most steps above
+    it; with the default cap of 100 none is."""
+    import logging
+
+    from pipeline.stages.sim import log_frame
+
+    column = (((0, 0, 0), (0.1, 0.2, 0.1)), ((0, 0, 0), (0.3, 0.3, 0.1)))
+    reports = {}
+    for cap in (1, 100):
+        _, _, s = dfsph(tiny_spec(*column, fluid={"viscosity": 1.0},
+                                  sim={"max_density_error": 1e-5, "max_iterations": cap}))
+        s.advance_to(0.1)
+        reports[cap] = s.frame_report()
+    capped = reports[1]
+    assert capped["density_capped_steps"] > capped["dfsph_steps"] // 2, capped
+    assert capped["density_error"] > 1e-5 and capped["max_iterations"] == 1
+    assert reports[100]["density_capped_steps"] == reports[100]["divergence_capped_steps"] == 0, reports[100]
+    with caplog.at_level(logging.INFO, logger="sphshot"):
+        log_frame(3, capped)
+        log_frame(4, reports[100])
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) >= 1 and all("frame 0003" in w and "sim.max_iterations" in w for w in warned), warned
+    assert f"on {capped['density_capped_steps']} of {capped['dfsph_steps']} steps" in warned[0]
+
+
 # ----------------------------------------------------------------------------------- layering
 def two_layers(heavy_below: bool, viscosity: float = 1.0) -> dict:
     water = {"name": "water", "rest_density": 1000.0, "viscosity": viscosity}

@@ -114,6 +114,13 @@ def log_frame(frame: int, report: dict) -> None:
                  report["dfsph_steps"], report["density_iterations"], 100 * report["density_error"],
                  100 * report["max_density_error"], report["divergence_iterations"],
                  100 * report["divergence_error"], 100 * report["max_divergence_error"])
+        for solve, key in (("density", "max_density_error"), ("divergence", "max_divergence_error")):
+            if report.get(f"{solve}_capped_steps"):
+                log.warning("sim: frame %04d: the %s solve stopped at its cap (sim.max_iterations = %d) above its "
+                            "bound on %d of %d steps (error up to %.3g%%, sim.%s %.3g%%): raise sim.max_iterations "
+                            "or lower sim.max_dt", frame, solve, report["max_iterations"],
+                            report[f"{solve}_capped_steps"], report["dfsph_steps"],
+                            100 * report[f"{solve}_error"], key, 100 * report[key])
         if report.get("viscosity_steps"):
             log.info("sim: frame %04d: viscosity implicit on %d steps, %.1f CG iterations a step, residual %.2g",
                      frame, report["viscosity_steps"], report["viscosity_iterations"], report["viscosity_residual"])
