@@ -95,7 +95,7 @@ class Sim(Strict):
     max_density_error: Annotated[float, Field(gt=0, le=0.1)] = 0.001     # dfsph: mean compression
     max_divergence_error: Annotated[float, Field(gt=0, le=0.1)] = 0.001  # dfsph: mean rate x dt
     max_iterations: Annotated[int, Field(ge=1, le=10000)] = 100          # dfsph: per solve and step
-    max_dt: Pos = 1.0 / 240.0                        # s
+    max_dt: Pos = 1.0 / 120.0                        # s
     surface_threshold: Pos = 0.4                     # |grad c| * h above which tension acts (mueller)
     # mueller: Müller et al. 2003's color-field force; akinci: Akinci et al. 2013's cohesion and
     # curvature (dfsph only), which holds drops together instead of pushing surface particles off

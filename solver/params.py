@@ -72,7 +72,7 @@ class SolverParams:
     colliders: tuple[Collider, ...] = ()
     gamma: float = 7.0
     cfl: float = 0.4
-    max_dt: float = 1.0 / 240.0
+    max_dt: float = 1.0 / 120.0
     surface_threshold: float = 0.4              # |grad c| h above which surface tension acts
     surface_tension_model: str = "mueller"      # "mueller" (color field) or "akinci" (2013; DFSPH)
     density_kernel: str = "poly6"
