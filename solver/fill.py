@@ -34,9 +34,10 @@ def fill_blocks(params: SolverParams, blocks: Iterable[Block] | None = None, set
     g = np.array(params.gravity, np.float64)
     gnorm = float(np.linalg.norm(g))
     blocks = list(params.blocks if blocks is None else blocks)
-    if params.lattice == "fcc" and tuple(blocks) != params.blocks:
+    own = tuple(blocks) == params.blocks
+    if params.lattice == "fcc" and not own:
         raise ValueError("an fcc fill fills the blocks its lattice was fitted to: pass params.blocks")
-    domain = params.fill_domain if tuple(blocks) == params.blocks else Domain(     # cubic: any blocks
+    domain = params.fill_domain if own else Domain(     # cubic: any blocks
         params.domain_min, params.domain_max, params.open_faces, d, params.lattice, [(b.min, b.max) for b in blocks])
     position, velocity, fluid = [], [], []
     for bi, b in enumerate(blocks):

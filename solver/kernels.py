@@ -197,9 +197,10 @@ def lattice_viscous_moment(kind: int, h: float, spacing: float, lattice: str = "
     shear wave on the fcc fill decayed 6-7 % slower than on the cubic fill (tests/test_dfsph.py)."""
     p = _lattice_sites(spacing, lattice, steps, h)
     r = np.linalg.norm(p, axis=1)
+    number_density = float(w_np(kind, r, h).sum())        # lattice_number_density, from these sites
     p, r = p[r > 0], r[r > 0]
     moment = -(dw_np(kind, r, h) * r / (r * r + 0.01 * h * h))[:, None] * p * p
-    return float(moment.sum(0).mean() / lattice_number_density(kind, h, spacing, lattice, steps))
+    return float(moment.sum(0).mean() / number_density)
 
 
 def _lattice_sites(spacing: float, lattice: str, steps, h: float) -> np.ndarray:
