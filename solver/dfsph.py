@@ -376,10 +376,40 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
         if ti.static(tension == MUELLER):
             a += color_tension(ftab[fi, F_SIGMA], n, lap, density[i], h, c.threshold)
         if ti.static(tension == AKINCI):
-            a += a_st
+            a += a_st + image_tension(i, fi, position, fluid, density, near, near_count, lay, prm, ftab, normal, kern)
         acceleration[i] = a
         viscous[i] = (a_eta / di - wall_visc[i] * vi) / ftab[fi, F_MASS]
         raise_max(stats, 0, (vi + dt_guess * a).norm())
+
+
+@ti.func
+def image_tension(i, fi, position: ti.template(), fluid: ti.template(), density: ti.template(), near: ti.template(),
+                  near_count: ti.template(), lay: ivec2, prm: ti.template(), ftab: ti.template(),
+                  normal: ti.template(), kern: ti.template()):
+    """Akinci et al. 2013's cohesion and curvature terms between i and the walls' images j' of
+    i and its neighbours of its fluid (normals mirrored as velocities are), as k_nonpressure
+    takes them between neighbours. The walls mirror the fluid for its density and pressure;
+    without its images in the tension too, cohesion pulled the layer along a wall away from
+    it (a non-wetting, rounded rim a radius or two wide all round the example's pool)."""
+    h = prm[P_H]
+    xi = position[i]
+    a = vec3(0.0)
+    mask, planes = mirror_walls(xi, box_of(prm), h)
+    if mask != 0:
+        base = i * lay.x
+        gamma, rho0, mass = ftab[fi, F_SIGMA], ftab[fi, F_RHO0], ftab[fi, F_MASS]
+        for sub in range(1, 8):
+            if (sub & mask) == sub:
+                for m in range(-1, near_count[i]):
+                    j = i if m < 0 else near[base + m * lay.y]
+                    if fluid[j] == fi:
+                        rv = xi - reflect(position[j], sub, planes)
+                        r = rv.norm()
+                        if (r < h) & (r > 1e-9):
+                            k_ij = 2.0 * rho0 / (density[i] + density[j])
+                            a -= k_ij * gamma * (mass * cohesion(r, h) * rv / r
+                                                 + normal[i] - reflect_velocity(normal[j], sub))
+    return a
 
 
 @ti.func
@@ -392,8 +422,9 @@ def cohesion(r: ti.f32, h: ti.f32) -> ti.f32:
 
 @ti.kernel
 def k_surface_normals(position: V3, number_density: F1, near: I1, near_count: I1, lay: ivec2, h: ti.f32,
-                      normal: V3, kern: ti.template()):
-    """Akinci et al. 2013's surface normal n_i = h sum_j grad W_ij / delta_j (0 inside)."""
+                      normal: V3, prm: F1, kern: ti.template()):
+    """Akinci et al. 2013's surface normal n_i = h sum_j grad W_ij / delta_j (0 inside), the
+    walls' images j' of i and its neighbours included: a wall is no surface."""
     for i in position:
         xi = position[i]
         n = vec3(0.0)
@@ -402,6 +433,13 @@ def k_surface_normals(position: V3, number_density: F1, near: I1, near_count: I1
             j = near[base + m * lay.y]
             rv = xi - position[j]
             n += K.grad_w(kern, rv, rv.norm(), h) / number_density[j]
+        mask, planes = mirror_walls(xi, box_of(prm), h)
+        if mask != 0:
+            for sub in range(1, 8):
+                if (sub & mask) == sub:
+                    for m in range(-1, near_count[i]):
+                        j = i if m < 0 else near[base + m * lay.y]
+                        n += image_grad(xi, position[j], sub, planes, h, kern) / number_density[j]
         normal[i] = h * n
 
 
@@ -609,7 +647,7 @@ class DFSPHSolver(SPHSolver):
         mode = (AKINCI if self.params.surface_tension_model == "akinci" else MUELLER) if self.tension else 0
         if mode == AKINCI:
             k_surface_normals(self.position, self.number_density, self.near, self.near_count, self.lay, self.h,
-                              self.normal, self.kern)
+                              self.normal, self.prm, self.kern)
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
                       self.density, self.near, self.near_count, self.gfac, self.lay, self.prm, self.ftab,
                       self.stats, guess, self.normal, self.viscous, self.wall_visc, self.kern, mode)
