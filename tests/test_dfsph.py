@@ -407,6 +407,21 @@ def test_akinci_surface_tension_pulls_a_cube_into_a_drop_and_keeps_it():
         assert r.max() < 1.03 * ball, f"t = {t}: a particle {r.max():.4f} m from the centre"
 
 
+def akinci_box_accelerations(r: float):
+    """(positions, accelerations), by particle id, of the fill lattice in a closed box's lower
+    half, no gravity, Akinci's tension at the example's gamma 0.15, before any step (and in
+    tests/test_gpu.py, on CUDA)."""
+    _spec, _params, s = dfsph(tiny_spec(((0, 0, 0), (0.3, 0.2, 0.3)), ((0, 0, 0), (0.3, 0.4, 0.3)),
+                                        sim={"particle_radius": r, "gravity": (0, 0, 0),
+                                             "surface_tension_model": "akinci"},
+                                        fluid={"surface_tension": 0.15}))
+    s.update_lists()
+    s.compute_density()
+    s.nonpressure()
+    order = np.argsort(s.id.to_numpy(), kind="stable")      # by particle id: the same on every backend
+    return s.position.to_numpy()[order], s.acceleration.to_numpy()[order]
+
+
 def test_akinci_tension_takes_a_wall_for_more_water_not_a_surface():
     """The walls mirror the fluid for its density and pressure, and Akinci's cohesion and
     normals take the same images: a block filling a closed box's lower half (no gravity, gamma
@@ -416,14 +431,7 @@ def test_akinci_tension_takes_a_wall_for_more_water_not_a_surface():
     Without the images that layer was pulled as hard as the free surface (6.2 m/s^2), and in the
     example the pool drew back from the walls in a rounded rim a radius or two wide."""
     r, h = 0.01, 0.04
-    _spec, _params, s = dfsph(tiny_spec(((0, 0, 0), (0.3, 0.2, 0.3)), ((0, 0, 0), (0.3, 0.4, 0.3)),
-                                        sim={"particle_radius": r, "gravity": (0, 0, 0),
-                                             "surface_tension_model": "akinci"},
-                                        fluid={"surface_tension": 0.15}))
-    s.update_lists()
-    s.compute_density()
-    s.nonpressure()
-    p, a = s.position.to_numpy(), s.acceleration.to_numpy()
+    p, a = akinci_box_accelerations(r)
     top = p[:, 1].max()
     away = (p[:, 2] > h) & (p[:, 2] < 0.3 - h)
     wall = away & (p[:, 1] > h) & (p[:, 1] < top - h) & (p[:, 0] < r)
