@@ -338,7 +338,7 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
     cohesion and curvature between particles of one fluid, with gamma = the fluid's tension:
       a_i = sum_j K_ij (-gamma m_j C(r) x_ij / r - gamma (n_i - n_j)),  K_ij = 2 rho0 / (rho_i + rho_j)
     (n: `normal`, from k_surface_normals), which pulls a drop together instead of pushing its
-    surface particles off it."""
+    surface particles off it; the walls' images take part as neighbours (image_tension)."""
     h = prm[P_H]
     for i in position:
         c = consts_of(prm)
