@@ -47,7 +47,7 @@ from .neighbours import k_gather_f1
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
 from .sph import SPHSolver, explicit_viscous_limit
 from .sums import Summer, chunk_sums_pass, sweep_open, total_pass
-from .types import D1, F1, F2, F4, I1, P_H, V3, T, box_of, consts_of, ivec2, raise_max, vec3
+from .types import D1, F1, F2, F4, I1, IV2, P_H, V3, T, box_of, consts_of, ivec2, raise_max, vec3
 from .viscosity import ImplicitViscosity
 from .wcsph import color_tension
 
@@ -77,16 +77,24 @@ SPEED_FLOOR = 0.25
 @ti.kernel
 def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, alpha: F1, wall_grad: V3,
                      verlet: I1, verlet_count: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
-                     prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, visc_t: F2, wall_visc: F1,
-                     ctype: I1, cprm: F2, sdf: F1, kern: ti.template()):
+                     img: I1, img_g: V3, img_span: IV2, img_top: I1, prm: F1, ftab: F2, ghost_t: F4,
+                     ghost_g: F4, visc_t: F2, wall_visc: F1, ctype: I1, cprm: F2, sdf: F1, kern: ti.template()):
     """Number density delta_i = sum_j W_ij + sum_b W_ib, density m_i delta_i and the factor
     alpha_i; copies the Verlet entries now within h into `near`, as the WCSPH density pass
     (without a skin `near` is `verlet` itself, filtered in place: DFSPHSolver._grow_neighbours),
     and beside each entry the pair's dW/dr / r (`gfac`), so that the solves' sweeps, at these
     same positions, take grad W_ij = gfac x_ij without a square root or the kernel's pieces.
     wall_visc[i]: the no-slip weight 2 eta_i S_i / (delta_i delta0) of the walls near i
-    (boundaries.wall_viscosity). `prm`: the constants (types.consts_of, box_of)."""
+    (boundaries.wall_viscosity). `prm`: the constants (types.consts_of, box_of).
+
+    The walls' images j' of i and its neighbours within h are listed for the sweeps as the
+    neighbours are: `img` holds j * 8 + sub (sub: the walls' bit set), `img_g` grad W_ij', and
+    img_span[i] = (start, count) particle i's entries. A particle with a wall near counts its
+    images first and reserves as many entries at the pool's top (`img_top`, atomically); where the
+    pool is too small img_top ends past its size, and the host grows it and runs this again."""
     h = prm[P_H]
+    img_top[0] = 0
+    cap = img.shape[0]
     for i in position:
         c, box = consts_of(prm), box_of(prm)
         xi = position[i]
@@ -116,7 +124,17 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
         # both or all three at an edge or corner), as fluid with their velocities mirrored
         s_m = 0.0
         mask, planes = mirror_walls(xi, box, h)
+        start, q = 0, 0
         if mask != 0:
+            reserve = 0
+            for sub in range(1, 8):
+                if (sub & mask) == sub:
+                    for m in range(-1, k):
+                        j = i if m < 0 else near[base + m * lay.y]
+                        r2 = (xi - reflect(position[j], sub, planes)).norm_sqr()
+                        reserve += ti.select((r2 < h * h) & (r2 > 1e-18), 1, 0)
+            start = ti.atomic_add(img_top[0], reserve)
+            end = ti.min(start + reserve, cap)
             for sub in range(1, 8):
                 if (sub & mask) == sub:
                     for m in range(-1, k):
@@ -129,6 +147,11 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
                             g = K.dw(kern, r, h) / r * rv
                             grad_sum += g
                             sq += g.norm_sqr() / ftab[fluid[j], F_MASS]
+                            if start + q < end:
+                                img[start + q] = j * 8 + sub
+                                img_g[start + q] = g
+                                q += 1
+        img_span[i] = ivec2(start, q)
         # colliders from their tables, added: the images cover the space beyond the walls that
         # the fluid mirrors into, which never lies beyond a collider's face too
         wd, wg = boundary_sums(xi, c, box, ghost_t, ghost_g, ctype, cprm, sdf, False)
@@ -147,46 +170,26 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
 
 
 @ti.func
-def image_grad(xi, xj, sub: ti.i32, planes, h: ti.f32, kern: ti.template()):
-    """grad_i W(x_i - x_j') for the image x_j' of x_j in the walls of bit set `sub` (at
-    `planes`); 0 where the image lies beyond h."""
-    g = vec3(0.0)
-    rv = xi - reflect(xj, sub, planes)
-    r2 = rv.norm_sqr()
-    if (r2 < h * h) & (r2 > 1e-18):
-        r = ti.sqrt(r2)
-        g = K.dw(kern, r, h) / r * rv
-    return g
-
-
-@ti.func
-def image_terms(out, i, position: ti.template(), near: ti.template(), near_count: ti.template(), lay: ivec2,
-                prm: ti.template(), kern: ti.template(), field: ti.template(), ki: ti.f32, rate: ti.template()):
-    """out plus the terms of the walls' images j' of i and its neighbours (in each wall within h
-    of x_i, and in two or three at an edge or corner): with `rate`, sum_j' (v_i - M v_j) . grad
-    W_ij' (`field` the velocities); else sum_j' (kappa_i + kappa_j) grad W_ij' (`field` kappa,
-    ki = kappa_i)."""
-    xi = position[i]
-    h = prm[P_H]
-    mask, planes = mirror_walls(xi, box_of(prm), h)
-    if mask != 0:
-        base = i * lay.x
-        for sub in range(1, 8):
-            if (sub & mask) == sub:
-                for m in range(-1, near_count[i]):
-                    j = i if m < 0 else near[base + m * lay.y]
-                    g = image_grad(xi, position[j], sub, planes, h, kern)
-                    if ti.static(rate):
-                        out += (field[i] - reflect_velocity(field[j], sub)).dot(g)
-                    else:
-                        out += (ki + field[j]) * g
+def image_terms(out, i, img: ti.template(), img_g: ti.template(), img_span: ti.template(), field: ti.template(),
+                ki: ti.f32, rate: ti.template()):
+    """out plus the terms of the walls' images j' of i and its neighbours (k_density_factor's
+    list): with `rate`, sum_j' (v_i - M v_j) . grad W_ij' (`field` the velocities); else
+    sum_j' (kappa_i + kappa_j) grad W_ij' (`field` kappa, ki = kappa_i)."""
+    span = img_span[i]
+    for q in range(span.x, span.x + span.y):
+        e = img[q]
+        j, sub = e >> 3, e & 7
+        if ti.static(rate):
+            out += (field[i] - reflect_velocity(field[j], sub)).dot(img_g[q])
+        else:
+            out += (ki + field[j]) * img_g[q]
     return out
 
 
 @ti.func
 def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.template(),
                  near_count: ti.template(), gfac: ti.template(), lay: ivec2, wall_grad: ti.template(),
-                 prm: ti.template(), kern: ti.template()):
+                 img: ti.template(), img_g: ti.template(), img_span: ti.template()):
     """D delta_i / Dt = sum_j (v_i - v_j) . grad W_ij + v_i . sum_b grad W_ib (samples at rest),
     with the walls' images j' of i and its neighbours (velocities mirrored)."""
     xi, vi = position[i], velocity[i]
@@ -195,17 +198,17 @@ def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.t
     for m in range(near_count[i]):
         j = near[base + m * lay.y]
         rate += (vi - velocity[j]).dot(gfac[base + m * lay.y] * (xi - position[j]))
-    return image_terms(rate, i, position, near, near_count, lay, prm, kern, velocity, 0.0, True)
+    return image_terms(rate, i, img, img_g, img_span, velocity, 0.0, True)
 
 
 @ti.func
-def divergence_kappa_pass(position: T, velocity: T, near: T, near_count: T, gfac: T, lay: T, alpha: T,
-                          wall_grad: T, kappa: T, residual: T, dt: ti.f32, prm: T, kern: T, go: T):
+def divergence_kappa_pass(position: T, velocity: T, near: T, near_count: T, gfac: T, lay: T, img: T, img_g: T,
+                          img_span: T, alpha: T, wall_grad: T, kappa: T, residual: T, dt: ti.f32, go: T):
     """kappa_i = alpha_i max(D delta_i / Dt, 0) / dt for particles with a full neighbourhood;
     residual[i] the rate each compresses at."""
     for i in position:
         if sweep_open(go):
-            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad, prm, kern)
+            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad, img, img_g, img_span)
             rate = ti.select((rate > 0.0) & (near_count[i] >= MIN_DIVERGENCE_NEIGHBOURS), rate, 0.0)
             kappa[i] = alpha[i] * rate / dt
             residual[i] = rate
@@ -213,21 +216,22 @@ def divergence_kappa_pass(position: T, velocity: T, near: T, near_count: T, gfac
 
 @ti.func
 def density_kappa_pass(position: T, velocity: T, number_density: T, near: T, near_count: T, gfac: T, lay: T,
-                       alpha: T, wall_grad: T, kappa: T, residual: T, dt: ti.f32, prm: T, kern: T, go: T):
+                       img: T, img_g: T, img_span: T, alpha: T, wall_grad: T, kappa: T, residual: T, dt: ti.f32,
+                       prm: T, go: T):
     """kappa_i = alpha_i max(delta*_i - delta0, 0) / dt^2 with delta* = delta + dt D delta / Dt;
     residual[i] the compression delta* - delta0 (clamped at 0)."""
     for i in position:
         if sweep_open(go):
             c = consts_of(prm)
-            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad, prm, kern)
+            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad, img, img_g, img_span)
             excess = ti.max(number_density[i] + dt * rate - c.lattice, 0.0)
             kappa[i] = alpha[i] * excess / (dt * dt)
             residual[i] = excess
 
 
 @ti.func
-def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac: T, lay: T, kappa: T, total: T,
-               wall_grad: T, dt: ti.f32, ftab: T, prm: T, kern: T, go: T):
+def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac: T, lay: T, img: T, img_g: T,
+               img_span: T, kappa: T, total: T, wall_grad: T, dt: ti.f32, ftab: T, go: T):
     """Equation (1) with this sweep's kappa; total += kappa (the step's pressure, and the next
     step's warm start). The walls' images j' carry kappa_j."""
     for i in position:
@@ -239,31 +243,31 @@ def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac:
             for m in range(near_count[i]):
                 j = near[base + m * lay.y]
                 push += (ki + kappa[j]) * gfac[base + m * lay.y] * (xi - position[j])
-            push = image_terms(push, i, position, near, near_count, lay, prm, kern, kappa, ki, False)
+            push = image_terms(push, i, img, img_g, img_span, kappa, ki, False)
             velocity[i] -= dt / ftab[fluid[i], F_MASS] * push
             total[i] += ki
 
 
 @ti.kernel
-def k_divergence_kappa(position: V3, velocity: V3, near: I1, near_count: I1, gfac: F1, lay: ivec2, alpha: F1,
-                       wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32, prm: F1, kern: ti.template()):
-    divergence_kappa_pass(position, velocity, near, near_count, gfac, lay, alpha, wall_grad, kappa, residual, dt,
-                          prm, kern, None)
+def k_divergence_kappa(position: V3, velocity: V3, near: I1, near_count: I1, gfac: F1, lay: ivec2, img: I1,
+                       img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32):
+    divergence_kappa_pass(position, velocity, near, near_count, gfac, lay, img, img_g, img_span, alpha, wall_grad,
+                          kappa, residual, dt, None)
 
 
 @ti.kernel
 def k_density_kappa(position: V3, velocity: V3, number_density: F1, near: I1, near_count: I1, gfac: F1,
-                    lay: ivec2, alpha: F1, wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32, prm: F1,
-                    kern: ti.template()):
-    density_kappa_pass(position, velocity, number_density, near, near_count, gfac, lay, alpha, wall_grad, kappa,
-                       residual, dt, prm, kern, None)
+                    lay: ivec2, img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3, kappa: F1, residual: F1,
+                    dt: ti.f32, prm: F1):
+    density_kappa_pass(position, velocity, number_density, near, near_count, gfac, lay, img, img_g, img_span, alpha,
+                       wall_grad, kappa, residual, dt, prm, None)
 
 
 @ti.kernel
-def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
-                  kappa: F1, total: F1, wall_grad: V3, dt: ti.f32, ftab: F2, prm: F1, kern: ti.template()):
-    apply_pass(position, velocity, fluid, near, near_count, gfac, lay, kappa, total, wall_grad, dt, ftab, prm, kern,
-               None)
+def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2, img: I1,
+                  img_g: V3, img_span: IV2, kappa: F1, total: F1, wall_grad: V3, dt: ti.f32, ftab: F2):
+    apply_pass(position, velocity, fluid, near, near_count, gfac, lay, img, img_g, img_span, kappa, total, wall_grad,
+               dt, ftab, None)
 
 
 @ti.kernel
@@ -285,9 +289,9 @@ DIVERGENCE, DENSITY = 0, 1
 
 @ti.kernel
 def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1, near_count: I1, gfac: F1,
-             lay: ivec2, alpha: F1, wall_grad: V3, kappa: F1, total: F1, scratch: F1, residual: F1, partial: F1,
-             groups: D1, dt: ti.f32, warm: ti.f32, prm: F1, ftab: F2, go: D1, bound: ti.f64, norm: ti.f64,
-             min_iterations: ti.i32, max_iterations: ti.i32, kern: ti.template(), solve: ti.template(),
+             lay: ivec2, img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3, kappa: F1, total: F1,
+             scratch: F1, residual: F1, partial: F1, groups: D1, dt: ti.f32, warm: ti.f32, prm: F1, ftab: F2, go: D1,
+             bound: ti.f64, norm: ti.f64, min_iterations: ti.i32, max_iterations: ti.i32, solve: ti.template(),
              first: ti.template()):
     """first: the warm start (total *= warm, applied into `scratch`) and the first error; else:
     one sweep (apply this kappa, one more iteration), unless done, and the error after it. Done
@@ -296,21 +300,21 @@ def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1
         go[DONE], go[ITER], go[ERR] = 0.0, 0.0, 0.0
         for i in total:
             total[i] *= warm
-        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, total, scratch, wall_grad, dt, ftab, prm,
-                   kern, go)
+        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, img, img_g, img_span, total, scratch,
+                   wall_grad, dt, ftab, go)
     else:
-        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, kappa, total, wall_grad, dt, ftab, prm,
-                   kern, go)
+        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, img, img_g, img_span, kappa, total,
+                   wall_grad, dt, ftab, go)
         if go[DONE] < 0.5:
             go[ITER] += 1.0
             if go[ITER] >= max_iterations:
                 go[DONE] = 1.0
     if ti.static(solve == DIVERGENCE):
-        divergence_kappa_pass(position, velocity, near, near_count, gfac, lay, alpha, wall_grad, kappa, residual,
-                              dt, prm, kern, go)
+        divergence_kappa_pass(position, velocity, near, near_count, gfac, lay, img, img_g, img_span, alpha,
+                              wall_grad, kappa, residual, dt, go)
     else:
-        density_kappa_pass(position, velocity, number_density, near, near_count, gfac, lay, alpha, wall_grad,
-                           kappa, residual, dt, prm, kern, go)
+        density_kappa_pass(position, velocity, number_density, near, near_count, gfac, lay, img, img_g, img_span,
+                           alpha, wall_grad, kappa, residual, dt, prm, go)
     chunk_sums_pass(residual, partial, go)
     s = total_pass(partial, groups, go)
     if go[DONE] < 0.5:
@@ -321,8 +325,9 @@ def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1
 
 @ti.kernel
 def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
-                  near: I1, near_count: I1, gfac: F1, lay: ivec2, prm: F1, ftab: F2, stats: F1, dt_guess: ti.f32,
-                  normal: V3, viscous: V3, wall_visc: F1, kern: ti.template(), tension: ti.template()):
+                  near: I1, near_count: I1, gfac: F1, lay: ivec2, img: I1, img_g: V3, img_span: IV2, prm: F1,
+                  ftab: F2, stats: F1, dt_guess: ti.f32, normal: V3, viscous: V3, wall_visc: F1, kern: ti.template(),
+                  tension: ti.template()):
     """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
     raised to the largest |v + a dt_guess| (the CFL speed). Morris's term goes to `viscous`,
     apart, to be taken explicitly or implicitly once the step is known (solver.viscosity), with
@@ -369,46 +374,48 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
                 lap += K.lap_poly6(r, h) / dj
             if ti.static(tension == AKINCI):
                 if fj == fi:
-                    k_ij = 2.0 * ftab[fi, F_RHO0] / (density[i] + density[j])
-                    gamma = ftab[fi, F_SIGMA]
-                    a_st -= k_ij * gamma * (ftab[fj, F_MASS] * cohesion(r, h) * rv / r + normal[i] - normal[j])
+                    a_st += akinci_pair(rv, r, h, density[i], density[j], normal[i], normal[j], ftab, fi)
         a = a_v / ftab[fi, F_MASS] + c.gravity + ftab[fi, F_XSPH] / dt_guess * smooth
         if ti.static(tension == MUELLER):
             a += color_tension(ftab[fi, F_SIGMA], n, lap, density[i], h, c.threshold)
         if ti.static(tension == AKINCI):
-            a += a_st + image_tension(i, fi, position, fluid, density, near, near_count, lay, prm, ftab, normal, kern)
+            a += a_st + image_tension(i, fi, position, fluid, density, img, img_g, img_span, prm, ftab, normal)
         acceleration[i] = a
         viscous[i] = (a_eta / di - wall_visc[i] * vi) / ftab[fi, F_MASS]
         raise_max(stats, 0, (vi + dt_guess * a).norm())
 
 
 @ti.func
-def image_tension(i, fi, position: ti.template(), fluid: ti.template(), density: ti.template(), near: ti.template(),
-                  near_count: ti.template(), lay: ivec2, prm: ti.template(), ftab: ti.template(),
-                  normal: ti.template(), kern: ti.template()):
+def akinci_pair(rv, r: ti.f32, h: ti.f32, rho_i: ti.f32, rho_j: ti.f32, n_i, n_j, ftab: ti.template(), fi: ti.i32):
+    """Akinci et al. 2013's cohesion and curvature between i and a neighbour of its fluid at
+    x_i - x_j = rv (|rv| = r, normals n_i, n_j): -K_ij gamma (m C(r) rv / r + n_i - n_j)."""
+    k_ij = 2.0 * ftab[fi, F_RHO0] / (rho_i + rho_j)
+    return -k_ij * ftab[fi, F_SIGMA] * (ftab[fi, F_MASS] * cohesion(r, h) * rv / r + n_i - n_j)
+
+
+@ti.func
+def image_tension(i, fi, position: ti.template(), fluid: ti.template(), density: ti.template(), img: ti.template(),
+                  img_g: ti.template(), img_span: ti.template(), prm: ti.template(), ftab: ti.template(),
+                  normal: ti.template()):
     """Akinci et al. 2013's cohesion and curvature terms between i and the walls' images j' of
-    i and its neighbours of its fluid (normals mirrored as velocities are), as k_nonpressure
-    takes them between neighbours. The walls mirror the fluid for its density and pressure;
-    without its images in the tension too, cohesion pulled the layer along a wall away from
-    it (a non-wetting, rounded rim a radius or two wide all round the example's pool)."""
+    i and its neighbours of its fluid (k_density_factor's list; normals mirrored as velocities
+    are), as k_nonpressure takes them between neighbours. The walls mirror the fluid for its
+    density and pressure; without its images in the tension too, cohesion pulled the layer
+    along a wall away from it (a non-wetting, rounded rim a radius or two wide all round the
+    example's pool)."""
     h = prm[P_H]
     xi = position[i]
     a = vec3(0.0)
-    mask, planes = mirror_walls(xi, box_of(prm), h)
-    if mask != 0:
-        base = i * lay.x
-        gamma, rho0, mass = ftab[fi, F_SIGMA], ftab[fi, F_RHO0], ftab[fi, F_MASS]
-        for sub in range(1, 8):
-            if (sub & mask) == sub:
-                for m in range(-1, near_count[i]):
-                    j = i if m < 0 else near[base + m * lay.y]
-                    if fluid[j] == fi:
-                        rv = xi - reflect(position[j], sub, planes)
-                        r = rv.norm()
-                        if (r < h) & (r > 1e-9):
-                            k_ij = 2.0 * rho0 / (density[i] + density[j])
-                            a -= k_ij * gamma * (mass * cohesion(r, h) * rv / r
-                                                 + normal[i] - reflect_velocity(normal[j], sub))
+    span = img_span[i]
+    if span.y > 0:
+        _, planes = mirror_walls(xi, box_of(prm), h)
+        for q in range(span.x, span.x + span.y):
+            e = img[q]
+            j, sub = e >> 3, e & 7
+            if fluid[j] == fi:
+                rv = xi - reflect(position[j], sub, planes)
+                a += akinci_pair(rv, rv.norm(), h, density[i], density[j], normal[i],
+                                 reflect_velocity(normal[j], sub), ftab, fi)
     return a
 
 
@@ -421,10 +428,12 @@ def cohesion(r: ti.f32, h: ti.f32) -> ti.f32:
 
 
 @ti.kernel
-def k_surface_normals(position: V3, number_density: F1, near: I1, near_count: I1, lay: ivec2, h: ti.f32,
-                      normal: V3, prm: F1, kern: ti.template()):
+def k_surface_normals(position: V3, number_density: F1, near: I1, near_count: I1, lay: ivec2, img: I1, img_g: V3,
+                      img_span: IV2, normal: V3, prm: F1, kern: ti.template()):
     """Akinci et al. 2013's surface normal n_i = h sum_j grad W_ij / delta_j (0 inside), the
-    walls' images j' of i and its neighbours included: a wall is no surface."""
+    walls' images j' of i and its neighbours included (k_density_factor's list): a wall is no
+    surface."""
+    h = prm[P_H]
     for i in position:
         xi = position[i]
         n = vec3(0.0)
@@ -433,13 +442,9 @@ def k_surface_normals(position: V3, number_density: F1, near: I1, near_count: I1
             j = near[base + m * lay.y]
             rv = xi - position[j]
             n += K.grad_w(kern, rv, rv.norm(), h) / number_density[j]
-        mask, planes = mirror_walls(xi, box_of(prm), h)
-        if mask != 0:
-            for sub in range(1, 8):
-                if (sub & mask) == sub:
-                    for m in range(-1, near_count[i]):
-                        j = i if m < 0 else near[base + m * lay.y]
-                        n += image_grad(xi, position[j], sub, planes, h, kern) / number_density[j]
+        span = img_span[i]
+        for q in range(span.x, span.x + span.y):
+            n += img_g[q] / number_density[img[q] >> 3]
         normal[i] = h * n
 
 
@@ -508,6 +513,9 @@ class DFSPHSolver(SPHSolver):
         self.wall_grad = ti.Vector.ndarray(3, ti.f32, shape=n)
         self.normal = ti.Vector.ndarray(3, ti.f32, shape=n)     # Akinci et al. 2013's surface normals
         self.residual = ti.ndarray(ti.f32, n)
+        # the walls' images beside the neighbour lists (k_density_factor), grown as needed
+        self.img_top = ti.ndarray(ti.i32, 1)
+        self._grow_images(max(n, 1))
         self._summer = Summer(n)
         self._sum = self._summer.total
         # the gated sweeps' controller (k_sweeps: DONE, ITER, ERR) and how many sweeps each
@@ -560,11 +568,31 @@ class DFSPHSolver(SPHSolver):
             self._lists_valid = self._lists_from_ref = False
         super().update_lists()
 
+    def _grow_images(self, cap: int) -> None:
+        self.img_cap = cap
+        self.img, self.img_g = ti.ndarray(ti.i32, cap), ti.Vector.ndarray(3, ti.f32, shape=cap)
+        self.img_span = ti.Vector.ndarray(2, ti.i32, shape=self.n)
+
+    @property
+    def images(self) -> tuple:
+        """The walls' images listed beside the neighbours (k_density_factor)."""
+        return self.img, self.img_g, self.img_span
+
     def compute_density(self) -> None:
+        """Number density, alpha and the pairs' gradients, with the walls' images listed: where
+        the list outgrew its pool, the pool grows by a quarter over what was asked and the pass
+        runs again (once)."""
+        self._density_factor()
+        need = int(self.img_top.to_numpy()[0])
+        if need > self.img_cap:
+            self._grow_images(need + need // 4)
+            self._density_factor()
+
+    def _density_factor(self) -> None:
         k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.wall_grad,
                          self.verlet, self.verlet_count, self.near, self.near_count, self.gfac, self.lay,
-                         self.prm, self.ftab, self.ghost_t, self.ghost_g, self.visc_t, self.wall_visc,
-                         self.ctype, self.cprm, self.sdf, self.kern)
+                         *self.images, self.img_top, self.prm, self.ftab, self.ghost_t, self.ghost_g, self.visc_t,
+                         self.wall_visc, self.ctype, self.cprm, self.sdf, self.kern)
 
     def _solve(self, solve: int, total, warm_scale: float, bound: float, dt: float,
                min_iterations: int) -> tuple[int, float]:
@@ -593,10 +621,10 @@ class DFSPHSolver(SPHSolver):
         per read."""
         def sweeps(first: bool) -> None:
             k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.near, self.near_count,
-                     self.gfac, self.lay, self.alpha, self.wall_grad, self.kappa, total, self.kappa_density_b,
-                     self.residual, self._summer.partial, self._summer.groups, dt, warm_scale, self.prm,
-                     self.ftab, self.sweep_ctl, bound, self.n * self.params.lattice_density, min_iterations,
-                     self.max_iterations, self.kern, solve, first)
+                     self.gfac, self.lay, *self.images, self.alpha, self.wall_grad, self.kappa, total,
+                     self.kappa_density_b, self.residual, self._summer.partial, self._summer.groups, dt, warm_scale,
+                     self.prm, self.ftab, self.sweep_ctl, bound, self.n * self.params.lattice_density,
+                     min_iterations, self.max_iterations, solve, first)
 
         sweeps(True)
         for _ in range(0 if self.on_cpu else self._last_sweeps[solve]):
@@ -613,15 +641,15 @@ class DFSPHSolver(SPHSolver):
         """This sweep's kappa and residual (one launch)."""
         if solve == DIVERGENCE:
             k_divergence_kappa(self.position, self.velocity, self.near, self.near_count, self.gfac, self.lay,
-                               self.alpha, self.wall_grad, self.kappa, self.residual, dt, self.prm, self.kern)
+                               *self.images, self.alpha, self.wall_grad, self.kappa, self.residual, dt)
         else:
             k_density_kappa(self.position, self.velocity, self.number_density, self.near, self.near_count,
-                            self.gfac, self.lay, self.alpha, self.wall_grad, self.kappa, self.residual, dt, self.prm,
-                            self.kern)
+                            self.gfac, self.lay, *self.images, self.alpha, self.wall_grad, self.kappa, self.residual,
+                            dt, self.prm)
 
     def _apply(self, kappa, total, dt: float) -> None:
         k_apply_kappa(self.position, self.velocity, self.fluid, self.near, self.near_count, self.gfac, self.lay,
-                      kappa, total, self.wall_grad, dt, self.ftab, self.prm, self.kern)
+                      *self.images, kappa, total, self.wall_grad, dt, self.ftab)
 
     def divergence_solve(self, dt: float) -> None:
         """Make the velocity field divergence-free where it compresses (step 2)."""
@@ -646,11 +674,11 @@ class DFSPHSolver(SPHSolver):
         guess = self.dt_prev or self.params.max_dt
         mode = (AKINCI if self.params.surface_tension_model == "akinci" else MUELLER) if self.tension else 0
         if mode == AKINCI:
-            k_surface_normals(self.position, self.number_density, self.near, self.near_count, self.lay, self.h,
-                              self.normal, self.prm, self.kern)
+            k_surface_normals(self.position, self.number_density, self.near, self.near_count, self.lay,
+                              *self.images, self.normal, self.prm, self.kern)
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
-                      self.density, self.near, self.near_count, self.gfac, self.lay, self.prm, self.ftab,
-                      self.stats, guess, self.normal, self.viscous, self.wall_visc, self.kern, mode)
+                      self.density, self.near, self.near_count, self.gfac, self.lay, *self.images, self.prm,
+                      self.ftab, self.stats, guess, self.normal, self.viscous, self.wall_visc, self.kern, mode)
         self.vmax = float(self.stats.to_numpy()[0])
 
     def kick(self, dt: float) -> None:

@@ -7,6 +7,7 @@ ivec2 = ti.math.ivec2
 V3 = ti.types.ndarray(dtype=vec3, ndim=1)
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+IV2 = ti.types.ndarray(dtype=ivec2, ndim=1)
 F2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 F4 = ti.types.ndarray(dtype=ti.f32, ndim=4)
 D1 = ti.types.ndarray(dtype=ti.f64, ndim=1)
