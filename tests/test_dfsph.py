@@ -6,6 +6,7 @@ import pytest
 
 from conftest import tiny_spec
 from pipeline.spec import ShotSpec
+from solver import kernels as K
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -405,6 +406,44 @@ def test_akinci_surface_tension_pulls_a_cube_into_a_drop_and_keeps_it():
         r = np.linalg.norm(p - p.mean(0), axis=1)
         assert r.max() / np.sqrt((r * r).mean()) < 1.33, f"t = {t}: not round, {r.max() / np.sqrt((r * r).mean()):.3f}"
         assert r.max() < 1.03 * ball, f"t = {t}: a particle {r.max():.4f} m from the centre"
+
+
+def test_the_walls_images_are_listed_as_the_mirror_makes_them():
+    """The density pass lists, for the sweeps, every image j' of a particle and its neighbours
+    in the walls within h (each wall, and the edges' and corner's pairs and triple) with its
+    grad W_ij': against numpy mirroring every pair in every wall subset. A block in a box corner
+    has particles near one, two and three walls; its ~16 images a floor particle outgrow the
+    pool's first size (one entry a particle), so its growth is taken too."""
+    _spec, params, s = dfsph(tiny_spec(((0, 0, 0), (0.12, 0.1, 0.12)), ((0, 0, 0), (0.3, 0.3, 0.3))))
+    s.update_lists()
+    s.compute_density()
+    assert s.img_cap > s.n, "the pool never grew: the growth path went untested"
+    x, h = s.position.to_numpy().astype(np.float64), params.h
+    img, grad, span = s.img.to_numpy(), s.img_g.to_numpy(), s.img_span.to_numpy()
+    lo, hi = np.zeros(3), np.full(3, 0.3)
+    listed_by_walls = np.zeros(4, int)
+    for i in range(s.n):
+        near = np.abs(x[i] - lo) < h                     # walls within h: the low ones only here
+        assert not (np.abs(x[i] - hi) < h).any()
+        expected = {}
+        for sub in range(1, 8):
+            axes = [a for a in range(3) if sub >> a & 1]
+            if not all(near[a] for a in axes):
+                continue
+            mirrored = x.copy()
+            mirrored[:, axes] = 2 * lo[axes] - x[:, axes]
+            d = np.linalg.norm(x[i] - mirrored, axis=1)
+            for j in np.flatnonzero((d < h) & (d > 1e-9)):
+                expected[j * 8 + sub] = x[i] - mirrored[j]
+        start, count = span[i]
+        assert count == len(expected), f"particle {i}: {count} images listed, {len(expected)} within h"
+        for e, g in zip(img[start:start + count], grad[start:start + count]):
+            rv = expected.pop(int(e))                     # KeyError: an image listed twice or not there
+            r = np.linalg.norm(rv)
+            exact = K.dw_np(params.density_kind, r, h) / r * rv
+            assert np.linalg.norm(g - exact) <= 1e-4 * np.linalg.norm(exact), f"particle {i}: {g} != {exact}"
+        listed_by_walls[near.sum()] += count
+    assert (listed_by_walls[1:] > 0).all(), f"images listed near 1, 2, 3 walls: {listed_by_walls[1:]}"
 
 
 def akinci_box_accelerations(r: float):
