@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import gc
 import glob
 import io
 import logging
@@ -53,6 +54,12 @@ def init_taichi(backend: str = "auto", threads: int = 0) -> str:
     want = (backend, threads)
     if _current == want:
         return _arch_name
+    if _current is not None:
+        # Free the old program's unreachable arrays while it still runs: an Ndarray collected
+        # after ti.init deletes itself through the new program (Ndarray.__del__), where a new
+        # array may sit at its address. Once in a full test run, a sim re-initialised for two
+        # threads then failed a launch with "argument not found".
+        gc.collect()
     order = {"auto": ["cuda", "vulkan", "cpu"], "cpu": ["cpu"], "cuda": ["cuda"], "vulkan": ["vulkan"]}[backend]
     if backend == "auto" and not _gpu_device_present():
         # Mesa's lavapipe is a Vulkan device too, but a software one: slower than Taichi's CPU path
