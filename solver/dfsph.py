@@ -516,6 +516,7 @@ class DFSPHSolver(SPHSolver):
         self.residual = ti.ndarray(ti.f32, n)
         # the walls' images beside the neighbour lists (k_density_factor), grown as needed
         self.img_top = ti.ndarray(ti.i32, 1)
+        self.img_span = ti.Vector.ndarray(2, ti.i32, shape=n)
         self._grow_images(max(n, 1))
         self._summer = Summer(n)
         self._sum = self._summer.total
@@ -572,7 +573,6 @@ class DFSPHSolver(SPHSolver):
     def _grow_images(self, cap: int) -> None:
         self.img_cap = cap
         self.img, self.img_g = ti.ndarray(ti.i32, cap), ti.Vector.ndarray(3, ti.f32, shape=cap)
-        self.img_span = ti.Vector.ndarray(2, ti.i32, shape=self.n)
 
     @property
     def images(self) -> tuple:
