@@ -88,8 +88,8 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
     (boundaries.wall_viscosity). `prm`: the constants (types.consts_of, box_of).
 
     The walls' images j' of i and its neighbours within h are listed for the sweeps as the
-    neighbours are: `img` holds j * 8 + sub (sub: the walls' bit set), `img_g` grad W_ij', and
-    img_span[i] = (start, count) particle i's entries. A particle with a wall near counts its
+    neighbours are: `img` holds image_entry(j, sub) (sub: the walls' bit set), `img_g` grad
+    W_ij', and img_span[i] = (start, count) particle i's entries. A particle with a wall near counts its
     images first and reserves as many entries at the pool's top (`img_top`, atomically); where the
     pool is too small img_top ends past its size, and the host grows it and runs this again."""
     h = prm[P_H]
@@ -148,7 +148,7 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
                             grad_sum += g
                             sq += g.norm_sqr() / ftab[fluid[j], F_MASS]
                             if start + q < end:
-                                img[start + q] = j * 8 + sub
+                                img[start + q] = image_entry(j, sub)
                                 img_g[start + q] = g
                                 q += 1
         img_span[i] = ivec2(start, q)
@@ -170,6 +170,18 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
 
 
 @ti.func
+def image_entry(j, sub):
+    """An entry of the walls' image list: neighbour j mirrored in the walls of bit set sub."""
+    return j * 8 + sub
+
+
+@ti.func
+def image_of(e):
+    """(j, sub) of an image_entry."""
+    return e >> 3, e & 7
+
+
+@ti.func
 def image_terms(out, i, img: ti.template(), img_g: ti.template(), img_span: ti.template(), field: ti.template(),
                 ki: ti.f32, rate: ti.template()):
     """out plus the terms of the walls' images j' of i and its neighbours (k_density_factor's
@@ -177,8 +189,7 @@ def image_terms(out, i, img: ti.template(), img_g: ti.template(), img_span: ti.t
     sum_j' (kappa_i + kappa_j) grad W_ij' (`field` kappa, ki = kappa_i)."""
     span = img_span[i]
     for q in range(span.x, span.x + span.y):
-        e = img[q]
-        j, sub = e >> 3, e & 7
+        j, sub = image_of(img[q])
         if ti.static(rate):
             out += (field[i] - reflect_velocity(field[j], sub)).dot(img_g[q])
         else:
@@ -410,8 +421,7 @@ def image_tension(i, fi, position: ti.template(), fluid: ti.template(), density:
     if span.y > 0:
         _, planes = mirror_walls(xi, box_of(prm), h)
         for q in range(span.x, span.x + span.y):
-            e = img[q]
-            j, sub = e >> 3, e & 7
+            j, sub = image_of(img[q])
             if fluid[j] == fi:
                 rv = xi - reflect(position[j], sub, planes)
                 a += akinci_pair(rv, rv.norm(), h, density[i], density[j], normal[i],
@@ -444,7 +454,8 @@ def k_surface_normals(position: V3, number_density: F1, near: I1, near_count: I1
             n += K.grad_w(kern, rv, rv.norm(), h) / number_density[j]
         span = img_span[i]
         for q in range(span.x, span.x + span.y):
-            n += img_g[q] / number_density[img[q] >> 3]
+            j, _ = image_of(img[q])
+            n += img_g[q] / number_density[j]
         normal[i] = h * n
 
 
@@ -571,7 +582,6 @@ class DFSPHSolver(SPHSolver):
         super().update_lists()
 
     def _grow_images(self, cap: int) -> None:
-        self.img_cap = cap
         self.img, self.img_g = ti.ndarray(ti.i32, cap), ti.Vector.ndarray(3, ti.f32, shape=cap)
 
     @property
@@ -585,7 +595,7 @@ class DFSPHSolver(SPHSolver):
         runs again (once)."""
         self._density_factor()
         need = int(self.img_top.to_numpy()[0])
-        if need > self.img_cap:
+        if need > self.img.shape[0]:
             self._grow_images(need + need // 4)
             self._density_factor()
 
