@@ -45,7 +45,7 @@ from .boundaries import boundary_sums, mirror_walls, reflect, reflect_velocity, 
 from .errors import Unstable
 from .neighbours import k_gather_f1
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
-from .sph import SPHSolver, explicit_viscous_limit
+from .sph import NOT_FINITE, SPHSolver, explicit_viscous_limit
 from .sums import Summer, chunk_sums_pass, sweep_open, total_pass
 from .types import D1, F1, F2, F4, I1, IV2, P_H, V3, T, box_of, consts_of, ivec2, raise_max, vec3
 from .viscosity import ImplicitViscosity
@@ -741,7 +741,7 @@ class DFSPHSolver(SPHSolver):
         the water's fastest, set the step from 0.08 to 0.22 s."""
         fastest = max(self.vmax, self.vmax_lone)
         if not math.isfinite(fastest):
-            raise Unstable(f"a particle's speed is {fastest} m/s", where=self.fastest_position())
+            raise Unstable(NOT_FINITE, where=self.fastest_position())
         if fastest > self.params.speed_of_sound:
             # (a blow-up: without this the step shrinks with 1/v and the run crawls on; the
             # example at four times its resolution once took 21,675 steps for one frame)

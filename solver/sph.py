@@ -342,6 +342,8 @@ class SPHSolver:
         self.vmax, self.amax = float(c[clock.VMAX]), float(c[clock.AMAX])
         self._moved = bool(c[clock.MOVED] > 0.5) or self._overflowed(float(c[clock.OVERFLOW]))
         if c[clock.UNSTABLE] > 0.5:
+            if not (math.isfinite(self.vmax) and math.isfinite(self.amax)):
+                raise Unstable(NOT_FINITE, where=self.fastest_position())
             raise Unstable(f"the time step fell to {c[clock.DT]:.3g} s (max acceleration {self.amax:.3g} m/s^2, "
                            f"max speed {self.vmax:.3g} m/s)", where=self.fastest_position())
 
@@ -420,6 +422,10 @@ def explicit_viscous_limit(h: float, nu) -> float:
     nu_max = float(np.max(nu))
     return 0.125 * (0.5 * h) ** 2 / nu_max if nu_max > 0 else math.inf
 
+
+# What a solver says when a particle's speed or acceleration is NaN or infinite (types.raise_max
+# counts a NaN as +inf, so it reaches the maxima the step is set from).
+NOT_FINITE = "a particle's speed or acceleration is not a finite number (NaN or inf)"
 
 OPEN_FAR = 1e6     # m: where an open face's wall goes (no wall samples, no collision)
 

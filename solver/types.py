@@ -17,9 +17,13 @@ T = ti.template()      # a pass's (ti.func's) arrays: its kernel's own, passed t
 @ti.func
 def raise_max(a: ti.template(), k: ti.i32, value: ti.f32):
     """a[k] = max(a[k], value), atomically; reading first means that once the maximum is found,
-    almost no thread contends for it."""
-    if value > a[k]:
-        ti.atomic_max(a[k], value)
+    almost no thread contends for it. A NaN counts as +inf: a comparison with NaN is false and
+    a max passes over it, so a particle gone NaN would never show in the maxima while it spread
+    to its neighbours for the rest of the frame. The test is on the bits, which fast math
+    cannot fold away."""
+    v = ti.select((ti.bit_cast(value, ti.u32) & 0x7FFFFFFF) > 0x7F800000, ti.math.inf, value)
+    if v > a[k]:
+        ti.atomic_max(a[k], v)
 
 
 

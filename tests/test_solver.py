@@ -1,5 +1,6 @@
 """Solver physics against analytics and invariants, at small particle counts."""
 
+import re
 import numpy as np
 import pytest
 
@@ -564,6 +565,28 @@ def test_a_dfsph_blow_up_raises_instead_of_crawling():
     d = s.snapshot()
     fastest = d["position"][np.argmax(np.linalg.norm(d["velocity"], axis=1))]
     np.testing.assert_allclose(info.value.where, fastest, atol=1e-6)
+
+
+@pytest.mark.parametrize("solver", ["dfsph", "wcsph"])
+def test_a_nan_particle_stops_the_step_it_appears_in(solver):
+    """A NaN compares false with everything and a max passes over it, so one particle's NaN
+    velocity never reached the maxima the step is set from: both solvers ran the frame to its
+    end while it spread (to 10 of the block's particles in DFSPH, 8 in WCSPH, 1/24 s), and
+    only the sim stage's check of the finished frame saw it. Now the first step stops, and
+    says where the particle is."""
+    from solver.errors import Unstable
+    from solver.sph import NOT_FINITE
+
+    def poison(state):
+        state["velocity"][0] = (np.nan, 0.0, 0.0)
+
+    _spec, _params, s = make_solver(tiny_spec(((0.3, 0.1, 0.1), (0.5, 0.3, 0.3)),
+                                              sim={"particle_radius": 0.02, "solver": solver}), mutate=poison)
+    with pytest.raises(Unstable, match=re.escape(NOT_FINITE)) as info:
+        s.advance_to(1 / 24)
+    assert s.steps == 0
+    d = s.snapshot()
+    np.testing.assert_allclose(info.value.where, d["position"][np.isnan(d["velocity"][:, 0])][0], atol=1e-6)
 
 
 # ---------------------------------------------------------------------------- mesh colliders
