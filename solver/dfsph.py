@@ -24,15 +24,16 @@ compressing divergence. One step (Bender & Koschier 2017, Algorithm 1):
 
   1. neighbours, number density, alpha
   2. divergence solve: D delta / Dt = sum_j v_ij . grad W_ij + v_i . sum_b grad W_ib -> 0
-     where it compresses, and inside the fluid where it expands once the fluid there is under
-     rest density (at half weight: INSIDE, LOOSE), until its mean times dt / delta0 is under
+     where it compresses, and where it expands once the fluid there has thinned under its
+     target (at half weight: LOOSE), until its mean times dt / delta0 is under
      max_divergence_error
   3. non-pressure accelerations (gravity, viscosity, surface tension)
   4. time step: CFL on the particle speed alone, dt = cfl r / max |v + a dt|, capped by max_dt
   5. v* = v + dt a; a viscosity in Pa s is taken implicitly where the step is beyond its
      explicit limit (solver.viscosity)
-  6. density solve: delta* = delta + dt D delta / Dt -> delta0 where compressed, until the
-     mean relative compression is under max_density_error
+  6. density solve: delta* = delta + dt D delta / Dt -> delta0 where compressed (at a free
+     surface, towards the particle's own target: SURFACE_FROM), until the mean relative
+     compression is under max_density_error
   7. drift x += dt v*, collide
 Both solves start from the previous step's kappa (warm start). A particle's reported pressure
 is both solves' kappa times delta^2.
@@ -49,7 +50,7 @@ from .neighbours import k_gather_f1
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
 from .sph import NOT_FINITE, SPHSolver, explicit_viscous_limit
 from .sums import Summer, chunk_sums_pass, sweep_open, total_pass
-from .types import D1, F1, F2, F4, I1, IV2, P_H, P_LATTICE, V3, T, box_of, consts_of, ivec2, raise_max, vec3
+from .types import D1, F1, F2, F4, I1, IV2, P_H, V3, T, box_of, consts_of, ivec2, raise_max, vec3
 from .viscosity import ImplicitViscosity
 from .wcsph import color_tension
 
@@ -66,16 +67,28 @@ MIN_DENSITY_ITERATIONS, MIN_DIVERGENCE_ITERATIONS = 2, 2
 # has changed (a particle that left the bulk still gets pushed; measured: the whole density
 # kappa blew a resting column up within 2 s); SPlisHSPlasH takes half.
 WARM_START = 0.5
-# Where the flow expands inside the fluid, the divergence solve pulls it back too (the bulk of an
-# incompressible fluid no more expands than it compresses; a one-sided solve lets a splash's
-# churned bulk stay aerated, and the surface mesh closes over the gaps). Inside: the kernel
-# gradients' sum is one-sided by less than INSIDE (|sum_j grad W_ij| h / delta0: about 0 in
-# the bulk, 1.02 on the fill lattice's top layer), the neighbourhood is full
-# (MIN_DIVERGENCE_NEIGHBOURS), and the number density has fallen LOOSE under rest; there the
-# expanding rate's kappa is negative, at EXPANSION_WEIGHT. At full weight, or without the
-# LOOSE gate, the example blew up in its second frame (tension at rest density is the tensile
-# instability's way in); at half weight the core of an expanding ball stops 1.5-2 % under rest.
-INSIDE, LOOSE, EXPANSION_WEIGHT = 0.35, 0.005, 0.5
+# A particle at a free surface misses the fluid beyond it: on the fill lattice's flat top its
+# number density reads 0.78 delta0 (cubic spline, h = 4 r). Pushing only where delta > delta0,
+# DFSPH let the top layers sink into the ones below until their sums read delta0 (a settled pool
+# lost 1.9 % of its volume, its top layer packed 1.25 layers' worth of particles). Each particle
+# has its own target instead, delta0 (1 - D): D is the share its neighbourhood misses, judged
+# from how one-sided it is, g = |sum_j grad W_ij| h / delta0 (walls' images and colliders
+# included): 0 up to SURFACE_FROM (the bulk of a settled pool reads 0.07, its 99th percentile
+# 0.33), rising linearly to the lattice top's own (g, D) (kernels.surface_deficit: 1.13, 0.22),
+# at most SURFACE_MOST. Squeezing the top layer raises its sum faster than its g, so the target
+# resists from the first hundredth of a radius. The push towards a target under delta0 is
+# capped at SURFACE_PUSH of delta0: a film's tip meeting a wall reads one-sided like a flat top
+# but with far fewer neighbours, and uncapped it was flung out at 8 m/s (bench/RESULTS.md,
+# twenty-eighth session).
+SURFACE_FROM, SURFACE_MOST, SURFACE_PUSH = 0.35, 0.35, 0.02
+# Where the flow expands, the divergence solve pulls it back too, once the number density has
+# fallen LOOSE under the particle's target and its neighbourhood is full (MIN_DIVERGENCE_NEIGHBOURS):
+# the expanding rate's kappa is negative there, at EXPANSION_WEIGHT (the bulk of an incompressible
+# fluid no more expands than it compresses; a one-sided solve let a splash's churned bulk stay
+# aerated, and the surface mesh closed over the gaps). At 0.75 the example blew up in frame 17,
+# and without the LOOSE gate in frame 2 (tension at rest density is the tensile instability's
+# way in); at half weight the core of an expanding ball stops 1.5-2 % under rest.
+LOOSE, EXPANSION_WEIGHT = 0.005, 0.5
 MUELLER, AKINCI = 1, 2          # surface tension models
 # The CFL speed is at least this share of the shot's expected largest speed V = sqrt(2 g H).
 # A resting column of height H took the steps of max_dt and blew up within a few steps above
@@ -87,14 +100,15 @@ SPEED_FLOOR = 0.25
 
 
 @ti.kernel
-def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, alpha: F1, one_sided: F1,
+def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, alpha: F1, target: F1,
                      wall_grad: V3, verlet: I1, verlet_count: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
                      img: I1, img_g: V3, img_span: IV2, img_top: I1, prm: F1, ftab: F2, ghost_t: F4,
-                     ghost_g: F4, visc_t: F2, wall_visc: F1, ctype: I1, cprm: F2, sdf: F1, kern: ti.template()):
+                     ghost_g: F4, visc_t: F2, wall_visc: F1, ctype: I1, cprm: F2, sdf: F1, surface_g: ti.f32,
+                     surface_d: ti.f32, kern: ti.template()):
     """Number density delta_i = sum_j W_ij + sum_b W_ib, density m_i delta_i and the factor
-    alpha_i, and how one-sided i's neighbourhood is, one_sided_i = |sum_j grad W_ij| h / delta0
-    (walls' images and colliders included: 0 in the bulk, about 1 at a flat free surface); copies
-    the Verlet entries now within h into `near`, as the WCSPH density pass
+    alpha_i, and the particle's target number density delta0 (1 - D_i) (SURFACE_FROM: D_i from
+    how one-sided its neighbourhood is, reaching surface_d at the lattice top's one-sidedness
+    surface_g); copies the Verlet entries now within h into `near`, as the WCSPH density pass
     (without a skin `near` is `verlet` itself, filtered in place: DFSPHSolver._grow_neighbours),
     and beside each entry the pair's dW/dr / r (`gfac`), so that the solves' sweeps, at these
     same positions, take grad W_ij = gfac x_ij without a square root or the kernel's pieces.
@@ -175,7 +189,9 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
         density[i] = mi * s
         wall_grad[i] = wg
         beta = (grad_sum + wg).norm_sqr() / mi + sq
-        one_sided[i] = (grad_sum + wg).norm() * h / c.lattice
+        g = (grad_sum + wg).norm() * h / c.lattice
+        d = surface_d * ti.max(g - SURFACE_FROM, 0.0) / (surface_g - SURFACE_FROM)
+        target[i] = c.lattice * (1.0 - ti.min(d, SURFACE_MOST))
         eta = ftab[fluid[i], F_ETA]
         wv = 0.0
         if eta > 0.0:
@@ -228,33 +244,36 @@ def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.t
 
 
 @ti.func
-def divergence_kappa_pass(position: T, velocity: T, number_density: T, one_sided: T, near: T, near_count: T, gfac: T,
+def divergence_kappa_pass(position: T, velocity: T, number_density: T, target: T, near: T, near_count: T, gfac: T,
                           lay: T, img: T, img_g: T, img_span: T, alpha: T, wall_grad: T, kappa: T, residual: T,
-                          dt: ti.f32, prm: T, go: T):
+                          dt: ti.f32, go: T):
     """kappa_i = alpha_i max(D delta_i / Dt, 0) / dt for particles with a full neighbourhood, and
-    for those of them inside the fluid whose number density fell LOOSE under rest (`one_sided`
-    under INSIDE) EXPANSION_WEIGHT alpha_i (D delta_i / Dt) / dt where they expand too (a
-    negative kappa); residual[i] the rate each compresses or expands at that the sweep acts on."""
+    for those of them whose number density fell LOOSE under their target EXPANSION_WEIGHT
+    alpha_i (D delta_i / Dt) / dt where they expand too (a negative kappa); residual[i] the rate
+    each compresses or expands at that the sweep acts on."""
     for i in position:
         if sweep_open(go):
             rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad, img, img_g, img_span)
-            loose = (one_sided[i] < INSIDE) & (number_density[i] < (1.0 - LOOSE) * prm[P_LATTICE])
+            loose = number_density[i] < (1.0 - LOOSE) * target[i]
             rate = ti.select(((rate > 0.0) | loose) & (near_count[i] >= MIN_DIVERGENCE_NEIGHBOURS), rate, 0.0)
             kappa[i] = alpha[i] * rate / dt * ti.select(rate < 0.0, EXPANSION_WEIGHT, 1.0)
             residual[i] = ti.abs(rate)
 
 
 @ti.func
-def density_kappa_pass(position: T, velocity: T, number_density: T, near: T, near_count: T, gfac: T, lay: T,
-                       img: T, img_g: T, img_span: T, alpha: T, wall_grad: T, kappa: T, residual: T, dt: ti.f32,
-                       prm: T, go: T):
-    """kappa_i = alpha_i max(delta*_i - delta0, 0) / dt^2 with delta* = delta + dt D delta / Dt;
-    residual[i] the compression delta* - delta0 (clamped at 0)."""
+def density_kappa_pass(position: T, velocity: T, number_density: T, target: T, near: T, near_count: T, gfac: T,
+                       lay: T, img: T, img_g: T, img_span: T, alpha: T, wall_grad: T, kappa: T, residual: T,
+                       dt: ti.f32, prm: T, go: T):
+    """kappa_i = alpha_i e / dt^2 with delta* = delta + dt D delta / Dt and the compression
+    e = max(delta*_i - delta0, min(delta*_i - target_i, SURFACE_PUSH delta0), 0): over rest
+    density as before, or over the particle's own target where its neighbourhood is one-sided
+    (at most SURFACE_PUSH there); residual[i] = e."""
     for i in position:
         if sweep_open(go):
             c = consts_of(prm)
             rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad, img, img_g, img_span)
-            excess = ti.max(number_density[i] + dt * rate - c.lattice, 0.0)
+            predicted = number_density[i] + dt * rate
+            excess = ti.max(predicted - c.lattice, ti.min(predicted - target[i], SURFACE_PUSH * c.lattice), 0.0)
             kappa[i] = alpha[i] * excess / (dt * dt)
             residual[i] = excess
 
@@ -279,19 +298,19 @@ def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac:
 
 
 @ti.kernel
-def k_divergence_kappa(position: V3, velocity: V3, number_density: F1, one_sided: F1, near: I1, near_count: I1,
+def k_divergence_kappa(position: V3, velocity: V3, number_density: F1, target: F1, near: I1, near_count: I1,
                        gfac: F1, lay: ivec2, img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3, kappa: F1,
-                       residual: F1, dt: ti.f32, prm: F1):
-    divergence_kappa_pass(position, velocity, number_density, one_sided, near, near_count, gfac, lay, img, img_g,
-                          img_span, alpha, wall_grad, kappa, residual, dt, prm, None)
+                       residual: F1, dt: ti.f32):
+    divergence_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, img, img_g,
+                          img_span, alpha, wall_grad, kappa, residual, dt, None)
 
 
 @ti.kernel
-def k_density_kappa(position: V3, velocity: V3, number_density: F1, near: I1, near_count: I1, gfac: F1,
+def k_density_kappa(position: V3, velocity: V3, number_density: F1, target: F1, near: I1, near_count: I1, gfac: F1,
                     lay: ivec2, img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3, kappa: F1, residual: F1,
                     dt: ti.f32, prm: F1):
-    density_kappa_pass(position, velocity, number_density, near, near_count, gfac, lay, img, img_g, img_span, alpha,
-                       wall_grad, kappa, residual, dt, prm, None)
+    density_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, img, img_g, img_span,
+                       alpha, wall_grad, kappa, residual, dt, prm, None)
 
 
 @ti.kernel
@@ -319,7 +338,7 @@ DIVERGENCE, DENSITY = 0, 1
 
 
 @ti.kernel
-def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, one_sided: F1, near: I1, near_count: I1,
+def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, target: F1, near: I1, near_count: I1,
              gfac: F1, lay: ivec2, img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3, kappa: F1, total: F1,
              scratch: F1, residual: F1, partial: F1, groups: D1, dt: ti.f32, warm: ti.f32, prm: F1, ftab: F2, go: D1,
              bound: ti.f64, norm: ti.f64, min_iterations: ti.i32, max_iterations: ti.i32, solve: ti.template(),
@@ -337,10 +356,10 @@ def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, one_side
                    wall_grad, dt, ftab, go)
     else:
         if ti.static(solve == DIVERGENCE):
-            divergence_kappa_pass(position, velocity, number_density, one_sided, near, near_count, gfac, lay, img,
-                                  img_g, img_span, alpha, wall_grad, kappa, residual, dt, prm, go)
+            divergence_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, img,
+                                  img_g, img_span, alpha, wall_grad, kappa, residual, dt, go)
         else:
-            density_kappa_pass(position, velocity, number_density, near, near_count, gfac, lay, img, img_g,
+            density_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, img, img_g,
                                img_span, alpha, wall_grad, kappa, residual, dt, prm, go)
         chunk_sums_pass(residual, partial, go)
         s = total_pass(partial, groups, go)
@@ -542,7 +561,8 @@ class DFSPHSolver(SPHSolver):
         self.speed_floor = SPEED_FLOOR * float(expected_speed)
         self.vmax_lone = 0.0        # the fastest particle with no neighbour (stable_dt)
         self.alpha, self.kappa = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
-        self.one_sided = ti.ndarray(ti.f32, n)
+        self.target = ti.ndarray(ti.f32, n)      # each particle's own rest number density (SURFACE_FROM)
+        self.surface_g, self.surface_d = K.surface_deficit(params.density_kind, self.h, params.spacing, params.lattice)
         self.wall_grad = ti.Vector.ndarray(3, ti.f32, shape=n)
         self.normal = ti.Vector.ndarray(3, ti.f32, shape=n)     # Akinci et al. 2013's surface normals
         self.residual = ti.ndarray(ti.f32, n)
@@ -621,10 +641,11 @@ class DFSPHSolver(SPHSolver):
             self._density_factor()
 
     def _density_factor(self) -> None:
-        k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.one_sided,
+        k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.target,
                          self.wall_grad, self.verlet, self.verlet_count, self.near, self.near_count, self.gfac,
                          self.lay, *self.images, self.img_top, self.prm, self.ftab, self.ghost_t, self.ghost_g,
-                         self.visc_t, self.wall_visc, self.ctype, self.cprm, self.sdf, self.kern)
+                         self.visc_t, self.wall_visc, self.ctype, self.cprm, self.sdf, self.surface_g, self.surface_d,
+                         self.kern)
 
     def _solve(self, solve: int, total, warm_scale: float, bound: float, dt: float,
                min_iterations: int) -> tuple[int, float]:
@@ -655,7 +676,7 @@ class DFSPHSolver(SPHSolver):
         """_solve with the sweeps gated on the device: the warm start, then (on a GPU) as many
         sweeps as this solve took last time before the first read, then one more per read."""
         def sweeps(first: bool) -> None:
-            k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.one_sided, self.near,
+            k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.target, self.near,
                      self.near_count, self.gfac, self.lay, *self.images, self.alpha, self.wall_grad, self.kappa, total,
                      self.kappa_density_b, self.residual, self._summer.partial, self._summer.groups, dt, warm_scale,
                      self.prm, self.ftab, self.sweep_ctl, bound, self.n * self.params.lattice_density,
@@ -675,13 +696,13 @@ class DFSPHSolver(SPHSolver):
     def _kappa(self, solve: int, dt: float) -> None:
         """This sweep's kappa and residual (one launch)."""
         if solve == DIVERGENCE:
-            k_divergence_kappa(self.position, self.velocity, self.number_density, self.one_sided, self.near,
+            k_divergence_kappa(self.position, self.velocity, self.number_density, self.target, self.near,
                                self.near_count, self.gfac, self.lay, *self.images, self.alpha, self.wall_grad,
-                               self.kappa, self.residual, dt, self.prm)
+                               self.kappa, self.residual, dt)
         else:
-            k_density_kappa(self.position, self.velocity, self.number_density, self.near, self.near_count,
-                            self.gfac, self.lay, *self.images, self.alpha, self.wall_grad, self.kappa, self.residual,
-                            dt, self.prm)
+            k_density_kappa(self.position, self.velocity, self.number_density, self.target, self.near,
+                            self.near_count, self.gfac, self.lay, *self.images, self.alpha, self.wall_grad, self.kappa,
+                            self.residual, dt, self.prm)
 
     def _apply(self, kappa, total, dt: float) -> None:
         k_apply_kappa(self.position, self.velocity, self.fluid, self.near, self.near_count, self.gfac, self.lay,
