@@ -188,8 +188,9 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
         number_density[i] = s
         density[i] = mi * s
         wall_grad[i] = wg
-        beta = (grad_sum + wg).norm_sqr() / mi + sq
-        g = (grad_sum + wg).norm() * h / c.lattice
+        grad = grad_sum + wg
+        beta = grad.norm_sqr() / mi + sq
+        g = grad.norm() * h / c.lattice
         d = surface_d * ti.max(g - SURFACE_FROM, 0.0) / (surface_g - SURFACE_FROM)
         target[i] = c.lattice * (1.0 - ti.min(d, SURFACE_MOST))
         eta = ftab[fluid[i], F_ETA]
