@@ -74,7 +74,8 @@ WARM_START = 0.5
 # has its own target instead, delta0 (1 - D): D is the share its neighbourhood misses, judged
 # from how one-sided it is, g = |sum_j grad W_ij| h / delta0 (walls' images and colliders
 # included): 0 up to SURFACE_FROM (the bulk of a settled pool reads 0.07, its 99th percentile
-# 0.33), rising linearly to the lattice top's own (g, D) (kernels.surface_deficit: 1.13, 0.22),
+# 0.33), rising linearly to the fill's top layer's own (g, D) (params.surface_deficit, on the
+# planes the fill lays: 1.14, 0.22),
 # at most SURFACE_MOST. Squeezing the top layer raises its sum faster than its g, so the target
 # resists from the first hundredth of a radius. The push towards a target under delta0 is
 # capped at SURFACE_PUSH of delta0: a film's tip meeting a wall reads one-sided like a flat top
@@ -563,7 +564,7 @@ class DFSPHSolver(SPHSolver):
         self.vmax_lone = 0.0        # the fastest particle with no neighbour (stable_dt)
         self.alpha, self.kappa = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
         self.target = ti.ndarray(ti.f32, n)      # each particle's own rest number density (SURFACE_FROM)
-        self.surface_g, self.surface_d = K.surface_deficit(params.density_kind, self.h, params.spacing, params.lattice)
+        self.surface_g, self.surface_d = params.surface_deficit
         self.wall_grad = ti.Vector.ndarray(3, ti.f32, shape=n)
         self.normal = ti.Vector.ndarray(3, ti.f32, shape=n)     # Akinci et al. 2013's surface normals
         self.residual = ti.ndarray(ti.f32, n)

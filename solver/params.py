@@ -106,6 +106,12 @@ class SolverParams:
                                         self.fill_domain.step)
 
     @cached_property
+    def surface_deficit(self) -> tuple[float, float]:
+        """(g, D) of the fill's flat top layer (kernels.surface_deficit), on the planes the fill
+        lays, as lattice_density is: DFSPH's free-surface target is calibrated on it."""
+        return K.surface_deficit(self.density_kind, self.h, self.spacing, self.lattice, self.fill_domain.step)
+
+    @cached_property
     def fill_domain(self) -> Domain:
         """The fill's lattice over the domain, fitted to `blocks` (solver.lattice)."""
         return Domain(self.domain_min, self.domain_max, self.open_faces, self.spacing, self.lattice,
