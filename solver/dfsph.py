@@ -91,6 +91,9 @@ SURFACE_FROM, SURFACE_MOST, SURFACE_PUSH = 0.35, 0.35, 0.02
 # way in); at half weight the core of an expanding ball stops 1.5-2 % under rest.
 LOOSE, EXPANSION_WEIGHT = 0.005, 0.5
 MUELLER, AKINCI = 1, 2          # surface tension models
+# Which viscosity terms k_nonpressure sums (a bit set, compiled in: a shot's fluids without
+# Müller's mu, Morris's eta or XSPH skip that term's work per pair, 11 % of the pass on the example)
+MU_TERM, ETA_TERM, XSPH_TERM = 1, 2, 4
 # The CFL speed is at least this share of the shot's expected largest speed V = sqrt(2 g H).
 # A resting column of height H took the steps of max_dt and blew up within a few steps above
 # dt = 2.8 r / V (tried: 0.4 m at r = 2.5 mm above 2.5-3 ms, at r = 5 mm above 4.2-6 ms;
@@ -378,7 +381,7 @@ def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, target: 
 def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
                   near: I1, near_count: I1, gfac: F1, lay: ivec2, img: I1, img_g: V3, img_span: IV2, prm: F1,
                   ftab: F2, stats: F1, dt_guess: ti.f32, normal: V3, viscous: V3, wall_visc: F1, kern: ti.template(),
-                  tension: ti.template()):
+                  tension: ti.template(), terms: ti.template()):
     """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
     raised to the largest |v + a dt_guess| of particles with a neighbour (the CFL speed), stats[1]
     to that of particles with none (stable_dt). Morris's term goes to `viscous`,
@@ -395,7 +398,9 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
     cohesion and curvature between particles of one fluid, with gamma = the fluid's tension:
       a_i = sum_j K_ij (-gamma m_j C(r) x_ij / r - gamma (n_i - n_j)),  K_ij = 2 rho0 / (rho_i + rho_j)
     (n: `normal`, from k_surface_normals), which pulls a drop together instead of pushing its
-    surface particles off it; the walls' images take part as neighbours (image_tension)."""
+    surface particles off it; the walls' images take part as neighbours (image_tension).
+    `terms`: the viscosity terms any fluid of the shot has (MU_TERM, ETA_TERM, XSPH_TERM); the
+    others are zero for every pair and are not summed."""
     h = prm[P_H]
     for i in position:
         c = consts_of(prm)
@@ -415,12 +420,15 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
             r = rv.norm()
             dj = number_density[j]
             fj = fluid[j]
-            mu = 0.5 * (ftab[fi, F_MU] + ftab[fj, F_MU])
-            a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
-            # Morris's pair term (wcsph.morris) with x_ij . grad W_ij = gfac r^2 from the density pass
-            a_eta += ((ftab[fi, F_ETA] + ftab[fj, F_ETA]) / dj * gfac[base + m * lay.y] * r * r
-                      / (r * r + 0.01 * h * h) * (vi - velocity[j]))
-            smooth += (velocity[j] - vi) * K.w(kern, r, h) / dj
+            if ti.static(terms & MU_TERM):
+                mu = 0.5 * (ftab[fi, F_MU] + ftab[fj, F_MU])
+                a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
+            if ti.static(terms & ETA_TERM):
+                # Morris's pair term (wcsph.morris) with x_ij . grad W_ij = gfac r^2 from the density pass
+                a_eta += ((ftab[fi, F_ETA] + ftab[fj, F_ETA]) / dj * gfac[base + m * lay.y] * r * r
+                          / (r * r + 0.01 * h * h) * (vi - velocity[j]))
+            if ti.static(terms & XSPH_TERM):
+                smooth += (velocity[j] - vi) * K.w(kern, r, h) / dj
             if ti.static(tension == MUELLER):
                 n += K.grad_w(K.POLY6, rv, r, h) / dj
                 lap += K.lap_poly6(r, h) / dj
@@ -583,6 +591,8 @@ class DFSPHSolver(SPHSolver):
         table = params.fluid_table
         self.dt_mu = explicit_viscous_limit(self.h, table[:, F_MU] / table[:, F_RHO0])
         self.dt_eta = explicit_viscous_limit(self.h, table[:, F_ETA] / table[:, F_RHO0])
+        self.viscous_terms = sum(bit for bit, col in ((MU_TERM, F_MU), (ETA_TERM, F_ETA), (XSPH_TERM, F_XSPH))
+                                 if np.any(table[:, col] != 0))
         self.viscous = ti.Vector.ndarray(3, ti.f32, shape=n)
         self.wall_visc = ti.ndarray(ti.f32, n)
         self.visc_t = ti.ndarray(ti.f32, (1, 25))
@@ -675,8 +685,10 @@ class DFSPHSolver(SPHSolver):
 
     def _gated_solve(self, solve: int, total, warm_scale: float, bound: float, dt: float,
                      min_iterations: int) -> tuple[int, float]:
-        """_solve with the sweeps gated on the device: the warm start, then (on a GPU) as many
-        sweeps as this solve took last time before the first read, then one more per read."""
+        """_solve with the sweeps gated on the device: the warm start, then as many sweeps before
+        the first read as the solve is sure to take (min_iterations) or, on a GPU, as it took last
+        time, then one more per read. (A read costs the CPU about 0.2 ms, as much as a sweep of
+        the example; a sweep launched past the end would cost a pass over every particle.)"""
         def sweeps(first: bool) -> None:
             k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.target, self.near,
                      self.near_count, self.gfac, self.lay, *self.images, self.alpha, self.wall_grad, self.kappa, total,
@@ -685,7 +697,7 @@ class DFSPHSolver(SPHSolver):
                      min_iterations, self.max_iterations, solve, first)
 
         sweeps(True)
-        for _ in range(0 if self.on_cpu else self._last_sweeps[solve]):
+        for _ in range(min_iterations if self.on_cpu else max(self._last_sweeps[solve], min_iterations)):
             sweeps(False)
         while True:
             done, iterations, err = self.sweep_ctl.to_numpy()
@@ -737,7 +749,8 @@ class DFSPHSolver(SPHSolver):
                               *self.images, self.normal, self.prm, self.kern)
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
                       self.density, self.near, self.near_count, self.gfac, self.lay, *self.images, self.prm,
-                      self.ftab, self.stats, guess, self.normal, self.viscous, self.wall_visc, self.kern, mode)
+                      self.ftab, self.stats, guess, self.normal, self.viscous, self.wall_visc, self.kern, mode,
+                      self.viscous_terms)
         self.vmax, self.vmax_lone = (float(v) for v in self.stats.to_numpy())
 
     def kick(self, dt: float) -> None:
