@@ -83,13 +83,18 @@ WARM_START = 0.5
 # twenty-eighth session).
 SURFACE_FROM, SURFACE_MOST, SURFACE_PUSH = 0.35, 0.35, 0.02
 # Where the flow expands, the divergence solve pulls it back too, once the number density has
-# fallen LOOSE under the particle's target and its neighbourhood is full (MIN_DIVERGENCE_NEIGHBOURS):
-# the expanding rate's kappa is negative there, at EXPANSION_WEIGHT (the bulk of an incompressible
-# fluid no more expands than it compresses; a one-sided solve let a splash's churned bulk stay
-# aerated, and the surface mesh closed over the gaps). At 0.75 the example blew up in frame 17,
-# and without the LOOSE gate in frame 2 (tension at rest density is the tensile instability's
-# way in); at half weight the core of an expanding ball stops 1.5-2 % under rest.
-LOOSE, EXPANSION_WEIGHT = 0.005, 0.5
+# fallen LOOSE under the particle's target and it has PULL_BACK_NEIGHBOURS: the expanding rate's
+# kappa is negative there, at EXPANSION_WEIGHT (the bulk of an incompressible fluid no more
+# expands than it compresses; a one-sided solve let a splash's churned bulk stay aerated, and the
+# surface mesh closed over the gaps). At 0.75 the example blew up in frame 17, and without the
+# LOOSE gate in frame 2 (tension at rest density is the tensile instability's way in); at half
+# weight the core of an expanding ball stops 1.5-2 % under rest. The target already says what a
+# one-sided neighbourhood misses, so the pull reaches thinner neighbourhoods than the compression
+# side's MIN_DIVERGENCE_NEIGHBOURS: with 20 for both, a sheet two to four particles thick (the
+# surge behind Martin & Moyce's front, bench/RESULTS.md's twenty-ninth session) was pushed towards
+# its surface targets and never pulled back: by t sqrt(g / a) = 5.25 it was twice as thick as its
+# water (median number density 0.77 of rest); with 12, 1.21 times (0.945).
+LOOSE, EXPANSION_WEIGHT, PULL_BACK_NEIGHBOURS = 0.005, 0.5, 12
 MUELLER, AKINCI = 1, 2          # surface tension models
 # Which viscosity terms k_nonpressure sums (a bit set, compiled in: a shot's fluids without
 # Müller's mu, Morris's eta or XSPH skip that term's work per pair: on the example, water with
@@ -253,15 +258,17 @@ def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.t
 def divergence_kappa_pass(position: T, velocity: T, number_density: T, target: T, near: T, near_count: T, gfac: T,
                           lay: T, img: T, img_g: T, img_span: T, alpha: T, wall_grad: T, kappa: T, residual: T,
                           dt: ti.f32, go: T):
-    """kappa_i = alpha_i max(D delta_i / Dt, 0) / dt for particles with a full neighbourhood, and
-    for those of them whose number density fell LOOSE under their target EXPANSION_WEIGHT
-    alpha_i (D delta_i / Dt) / dt where they expand too (a negative kappa); residual[i] the rate
-    each compresses or expands at that the sweep acts on."""
+    """kappa_i = alpha_i max(D delta_i / Dt, 0) / dt for particles with a full neighbourhood
+    (MIN_DIVERGENCE_NEIGHBOURS), and EXPANSION_WEIGHT alpha_i (D delta_i / Dt) / dt where those
+    with PULL_BACK_NEIGHBOURS whose number density fell LOOSE under their target expand (a
+    negative kappa); residual[i] the rate each compresses or expands at that the sweep acts on."""
     for i in position:
         if sweep_open(go):
             rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad, img, img_g, img_span)
             loose = number_density[i] < (1.0 - LOOSE) * target[i]
-            rate = ti.select(((rate > 0.0) | loose) & (near_count[i] >= MIN_DIVERGENCE_NEIGHBOURS), rate, 0.0)
+            compressing = (rate > 0.0) & (near_count[i] >= MIN_DIVERGENCE_NEIGHBOURS)
+            thinned = loose & (rate < 0.0) & (near_count[i] >= PULL_BACK_NEIGHBOURS)
+            rate = ti.select(compressing | thinned, rate, 0.0)
             kappa[i] = alpha[i] * rate / dt * ti.select(rate < 0.0, EXPANSION_WEIGHT, 1.0)
             residual[i] = ti.abs(rate)
 
