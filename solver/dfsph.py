@@ -98,7 +98,7 @@ LOOSE, EXPANSION_WEIGHT, PULL_BACK_NEIGHBOURS = 0.005, 0.5, 12
 MUELLER, AKINCI = 1, 2          # surface tension models
 # Which viscosity terms k_nonpressure sums (a bit set, compiled in: a shot's fluids without
 # Müller's mu, Morris's eta or XSPH skip that term's work per pair: on the example, water with
-# eta only, the pass's fastest run went from 2.0 to 1.6 ms)
+# eta and XSPH but no mu, the pass's fastest run went from 2.0 to 1.6 ms)
 MU_TERM, ETA_TERM, XSPH_TERM = 1, 2, 4
 # The CFL speed is at least this share of the shot's expected largest speed V = sqrt(2 g H).
 # A resting column of height H took the steps of max_dt and blew up within a few steps above
