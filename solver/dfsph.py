@@ -75,9 +75,8 @@ WARM_START = 0.5
 # from how one-sided it is, g = |sum_j grad W_ij| h / delta0 (walls' images and colliders
 # included): 0 up to SURFACE_FROM (the bulk of a settled pool reads 0.07, its 99th percentile
 # 0.33), rising linearly to the fill's top layer's own (g, D) (params.surface_deficit, on the
-# planes the fill lays: 1.14, 0.22),
-# at most SURFACE_MOST. Squeezing the top layer raises its sum faster than its g, so the target
-# resists from the first hundredth of a radius. The push towards a target under delta0 is
+# planes the fill lays: 1.14, 0.22), at most SURFACE_MOST. Squeezing the top layer raises its
+# sum faster than its g, so the target resists from the first hundredth of a radius. The push towards a target under delta0 is
 # capped at SURFACE_PUSH of delta0: a film's tip meeting a wall reads one-sided like a flat top
 # but with far fewer neighbours, and uncapped it was flung out at 8 m/s (bench/RESULTS.md,
 # twenty-eighth session).
@@ -92,8 +91,8 @@ SURFACE_FROM, SURFACE_MOST, SURFACE_PUSH = 0.35, 0.35, 0.02
 # one-sided neighbourhood misses, so the pull reaches thinner neighbourhoods than the compression
 # side's MIN_DIVERGENCE_NEIGHBOURS: with 20 for both, a sheet two to four particles thick (the
 # surge behind Martin & Moyce's front, bench/RESULTS.md's twenty-ninth session) was pushed towards
-# its surface targets and never pulled back: by t sqrt(g / a) = 5.25 it was twice as thick as its
-# water (median number density 0.77 of rest); with 12, 1.21 times (0.945).
+# its surface targets and never pulled back: by t sqrt(g / a) = 5.25 it stood 1.9-2.0 times its
+# water's depth (median number density 0.76-0.77 of rest); with 12, 1.2 times (0.94).
 LOOSE, EXPANSION_WEIGHT, PULL_BACK_NEIGHBOURS = 0.005, 0.5, 12
 MUELLER, AKINCI = 1, 2          # surface tension models
 # Which viscosity terms k_nonpressure sums (a bit set, compiled in: a shot's fluids without
@@ -695,8 +694,8 @@ class DFSPHSolver(SPHSolver):
                      min_iterations: int) -> tuple[int, float]:
         """_solve with the sweeps gated on the device: the warm start, then as many sweeps before
         the first read as the solve is sure to take (min_iterations) or, on a GPU, as it took last
-        time, then one more per read. (A read costs the CPU about 0.2 ms, as much as a sweep of
-        the example; a sweep launched past the end would cost a pass over every particle.)"""
+        time, then one more per read. (A read costs the CPU about 0.2 ms, about one of a sweep's
+        two passes on the example; a sweep launched past the end would cost both.)"""
         def sweeps(first: bool) -> None:
             k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.target, self.near,
                      self.near_count, self.gfac, self.lay, *self.images, self.alpha, self.wall_grad, self.kappa, total,
