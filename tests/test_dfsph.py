@@ -482,7 +482,8 @@ def test_akinci_surface_tension_pulls_a_cube_into_a_drop_and_keeps_it():
       particles, which damps the ringing less: 1.35-1.39 from 0.2 to 0.36 s, then 1.31-1.34);
     - it settles: the mean from 0.4 to 0.6 s under that from 0.2 to 0.4 s and under a ball's
       with its outermost particle half a radius beyond R, (R + r / 2) / (sqrt(3 / 5) R) = 1.34
-      (measured 1.32 against 1.36), and no sample from 0.4 s over 1.36 (measured at most 1.34);
+      (measured 1.32 against 1.36 and 1.34), and no sample from 0.4 s over 1.36 (measured at most
+      1.34);
     - from 0.2 s no particle farther than 1.15 R from the centre (the cube's corners are at
       1.35 R; measured at most 1.08) or without a neighbour within h.
     Müller's color-field force (sigma 2) on the same cube fails all but the last: roundness
