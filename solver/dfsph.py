@@ -76,10 +76,10 @@ WARM_START = 0.5
 # included): 0 up to SURFACE_FROM (the bulk of a settled pool reads 0.07, its 99th percentile
 # 0.33), rising linearly to the fill's top layer's own (g, D) (params.surface_deficit, on the
 # planes the fill lays: 1.14, 0.22), at most SURFACE_MOST. Squeezing the top layer raises its
-# sum faster than its g, so the target resists from the first hundredth of a radius. The push towards a target under delta0 is
-# capped at SURFACE_PUSH of delta0: a film's tip meeting a wall reads one-sided like a flat top
-# but with far fewer neighbours, and uncapped it was flung out at 8 m/s (bench/RESULTS.md,
-# twenty-eighth session).
+# sum faster than its g, so the target resists from the first hundredth of a radius. The push
+# towards a target under delta0 is capped at SURFACE_PUSH of delta0: a film's tip meeting a wall
+# reads one-sided like a flat top but with far fewer neighbours, and uncapped it was flung out
+# at 8 m/s (bench/RESULTS.md, twenty-eighth session).
 SURFACE_FROM, SURFACE_MOST, SURFACE_PUSH = 0.35, 0.35, 0.02
 # Where the flow expands, the divergence solve pulls it back too, once the number density has
 # fallen LOOSE under the particle's target and it has PULL_BACK_NEIGHBOURS: the expanding rate's
@@ -579,7 +579,6 @@ class DFSPHSolver(SPHSolver):
         self.vmax_lone = 0.0        # the fastest particle with no neighbour (stable_dt)
         self.alpha, self.kappa = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
         self.target = ti.ndarray(ti.f32, n)      # each particle's own rest number density (SURFACE_FROM)
-        self.surface_g, self.surface_d = params.surface_deficit
         self.wall_grad = ti.Vector.ndarray(3, ti.f32, shape=n)
         self.normal = ti.Vector.ndarray(3, ti.f32, shape=n)     # Akinci et al. 2013's surface normals
         self.residual = ti.ndarray(ti.f32, n)
@@ -663,7 +662,7 @@ class DFSPHSolver(SPHSolver):
         k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.target,
                          self.wall_grad, self.verlet, self.verlet_count, self.near, self.near_count, self.gfac,
                          self.lay, *self.images, self.img_top, self.prm, self.ftab, self.ghost_t, self.ghost_g,
-                         self.visc_t, self.wall_visc, self.ctype, self.cprm, self.sdf, self.surface_g, self.surface_d,
+                         self.visc_t, self.wall_visc, self.ctype, self.cprm, self.sdf, *self.params.surface_deficit,
                          self.kern)
 
     def _solve(self, solve: int, total, warm_scale: float, bound: float, dt: float,
