@@ -189,6 +189,10 @@ class Fluid(Strict):
     viscosity: NonNeg | None = None
     surface_tension: NonNeg = 0.0     # N/m
     color: Color = (0.125, 0.4, 0.625)   # clear water's blue (the water look dims it)
+    # m, water look: the depth of this liquid through which what lies behind it takes `color`
+    # (Beer-Lambert per channel, as Arnold's transmission_depth): honey, tea, wine. Unset: a
+    # clear liquid, `color` dimmed as its body and more opaque where deeper
+    transmission_depth: Pos | None = None
     blocks: Annotated[tuple[Block, ...], Field(min_length=1)]
 
 

@@ -88,14 +88,16 @@ def test_render_key_change_leaves_sim_and_surface_valid(shot, tmp_path):
 
 
 def test_a_color_is_the_renders_parameter():
-    """A fluid's or a collider's color changes only the render stage's hash (a look tweak after
+    """A fluid's or a collider's color (or a fluid's transmission depth) changes only the render
+    stage's hash (a look tweak after
     the sim re-renders, it does not make the sim and surface frames stale); a fluid's physics
     changes every stage's."""
     from pipeline.spec import load_spec
 
     job = ROOT / "jobs" / "dambreak.toml"
     base = cache.stage_hashes(load_spec(job))
-    for change in ("fluids.0.color=[0.85, 0.52, 0.1]", "colliders.0.color=[0.2, 0.2, 0.2]"):
+    for change in ("fluids.0.color=[0.85, 0.52, 0.1]", "colliders.0.color=[0.2, 0.2, 0.2]",
+                   "fluids.0.transmission_depth=0.02"):
         h = cache.stage_hashes(load_spec(job, [change]))
         assert h["sim"] == base["sim"] and h["surface"] == base["surface"] and h["render"] != base["render"], change
     h = cache.stage_hashes(load_spec(job, ["fluids.0.dynamic_viscosity=0.002"]))

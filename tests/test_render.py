@@ -84,6 +84,22 @@ def synthetic_particles(spec, frames):
     return paths
 
 
+def with_level_set(paths, frame: int):
+    """Write the level set of the frame's synthetic mesh where the surface stage puts its .vdb
+    (the water look's depth tint reads it); returns the mesh."""
+    import pyopenvdb as ov
+
+    from pipeline.formats import read_mesh, write_vdb
+
+    m = read_mesh(paths.surface_meshes(frame)[None])
+    grid = ov.FloatGrid.createLevelSetFromPolygons(m.points.astype(np.float64), triangles=m.faces,
+                                                   transform=ov.createLinearTransform(voxelSize=0.005),
+                                                   halfWidth=3.0)
+    grid.name = "surface"
+    write_vdb(paths.surface_vdb(frame), [grid])
+    return m
+
+
 def quiet():
     return Progress(stream=open(os.devnull, "w"), interactive=False)
 
@@ -215,19 +231,12 @@ def test_water_is_as_clear_as_it_is_shallow(tmp_path):
     than near its outline, a short chord (measured 0.79 against 0.39 on average); every vertex
     at least the floor (half the look's opacity); faces turned away clear. The frame is drawn
     with these opacities."""
-    import pyopenvdb as ov
-
-    from pipeline.formats import read_level_set, read_mesh, write_vdb
+    from pipeline.formats import read_level_set
     from pipeline.stages import render
 
     spec = scene(tmp_path, look="water")
     paths = synthetic_meshes(spec, [2])
-    m = read_mesh(paths.surface_meshes(2)[None])
-    grid = ov.FloatGrid.createLevelSetFromPolygons(m.points.astype(np.float64), triangles=m.faces,
-                                                   transform=ov.createLinearTransform(voxelSize=0.005),
-                                                   halfWidth=3.0)
-    grid.name = "surface"
-    write_vdb(paths.surface_vdb(2), [grid])
+    m = with_level_set(paths, 2)
     fr = render.FrameRenderer(spec)
     try:
         alpha = fr._water_alpha(2, m.points, m.normals, read_level_set(paths.surface_vdb(2)))
@@ -245,6 +254,50 @@ def test_water_is_as_clear_as_it_is_shallow(tmp_path):
         np.testing.assert_array_equal(drawn[0].mapper.dataset.point_data["rgba"][:, 3], np.round(255 * alpha))
     finally:
         fr.close()
+
+
+def test_a_colored_liquid_takes_its_color_at_its_transmission_depth(tmp_path):
+    """fluids.transmission_depth (honey): light through a length d of the liquid keeps
+    color^(d / depth) of each channel. Against the look's ground gray g each front vertex's
+    color c and alpha blend to exactly g times that (alpha c + (1 - alpha) g = g T, where alpha
+    is above its floor); the middle of the 0.2 m ball (about 4 depths of 5 cm behind it) is
+    darker and redder than near its outline, and more opaque; faces turned away are clear. The
+    frame matches its golden: an amber ball, deep orange-brown at its middle, gold at its rim."""
+    from pipeline.formats import read_level_set
+    from pipeline.stages import render
+
+    honey = (0.8, 0.45, 0.08)
+    spec = scene(tmp_path, look="water", color=honey)
+    spec = spec.model_copy(update={"fluids": (spec.fluids[0].model_copy(update={"transmission_depth": 0.05}),)})
+    paths = synthetic_meshes(spec, [2])
+    m = with_level_set(paths, 2)
+    fr = render.FrameRenderer(spec)
+    try:
+        level_set = read_level_set(paths.surface_vdb(2))
+        rgb, alpha = fr._transmitted(2, m.points, m.normals, level_set, honey, 0.05)
+        front, water = fr._water_behind(2, m.points, m.normals, level_set, 0.05, 4.0)
+        g = float(np.mean(fr.look["ground_color"]))
+        through = np.asarray(honey) ** (water[:, None] / 0.05)
+        above = alpha[front] > 0.5 * fr.look["opacity"] + 1e-6
+        blended = alpha[front, None] * rgb[front] + (1 - alpha[front, None]) * g
+        np.testing.assert_allclose(blended[above], g * through[above], atol=1e-9)
+        assert (alpha[~front] == 0).all() and above.mean() > 0.5
+        eye = np.asarray(spec.render.camera.position)
+        ray = m.points - eye
+        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+        facing = -np.einsum("ij,ij->i", m.normals, ray)
+        middle, rim = facing > 0.95, (facing > 0) & (facing < 0.3)
+        assert water[facing[front] > 0.95].mean() > 2 * water[(facing[front] > 0) & (facing[front] < 0.3)].mean()
+        assert alpha[middle].mean() > alpha[rim].mean() + 0.2
+        transmitted = g * through        # what the eye gets through the middle and the rim
+        red_share = lambda c: c[:, 0] / c.sum(axis=1)      # noqa: E731
+        mid, edge = transmitted[facing[front] > 0.95], transmitted[(facing[front] > 0) & (facing[front] < 0.3)]
+        assert mid.sum(axis=1).mean() < 0.6 * edge.sum(axis=1).mean()
+        assert red_share(mid).mean() > red_share(edge).mean() + 0.1
+    finally:
+        fr.close()
+    render.run(spec, [2], paths, quiet())
+    compare("look_water_honey_f2", paths.render_frame(2))
 
 
 def test_a_frame_is_the_same_drawn_first_or_after_another(tmp_path):

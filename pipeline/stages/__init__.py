@@ -47,19 +47,24 @@ class Stage:
 
 
 def _sim_sections(spec) -> dict[str, Any]:
-    """What the particles depend on. Fluids' and colliders' colors are the render's (a color
-    changed after the sim re-renders; until 2026-11-26 it made the whole sim stale)."""
+    """What the particles depend on. Fluids' and colliders' colors (and a fluid's transmission
+    depth) are the render's (a color changed after the sim re-renders; until 2026-11-26 it made
+    the whole sim stale)."""
     return {"shot": {"frame_start": spec.shot.frame_start, "fps": spec.shot.fps},
             "sim": spec.sim.model_dump(exclude={"backend", "threads"}),
             "domain": spec.domain.model_dump(),
-            "fluids": [f.model_dump(exclude={"color"}) for f in spec.fluids],
+            "fluids": [f.model_dump(exclude={"color", "transmission_depth"}) for f in spec.fluids],
             "colliders": [c.model_dump(exclude={"color"}) for c in spec.colliders],
             "meshes": spec.mesh_hashes()}
 
 
 def _render_sections(spec) -> dict[str, Any]:
-    return {"render": spec.render.model_dump(),
-            "colors": {"fluids": [f.color for f in spec.fluids], "colliders": [c.color for c in spec.colliders]}}
+    """What the images depend on beside the surface; a fluid's transmission depth only where
+    one is set (so the renders of shots without one stay valid)."""
+    colors = {"fluids": [f.color for f in spec.fluids], "colliders": [c.color for c in spec.colliders]}
+    if any(f.transmission_depth is not None for f in spec.fluids):
+        colors["transmission_depth"] = [f.transmission_depth for f in spec.fluids]
+    return {"render": spec.render.model_dump(), "colors": colors}
 
 
 def _surface_files(paths, frame: int) -> list:
