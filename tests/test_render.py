@@ -300,6 +300,40 @@ def test_a_colored_liquid_takes_its_color_at_its_transmission_depth(tmp_path):
     compare("look_water_honey_f2", paths.render_frame(2))
 
 
+def test_a_collider_has_its_form_under_the_water_look(tmp_path):
+    """A grey sphere collider alone under the water look, with the default lights: from its lit
+    side to its shadowed side its brightness spans (p90 - p10) / p50 = 0.45 (measured: 78,
+    111, 128 of 255). With the PBR shading the colliders had before (the look's sky lights them
+    from every side) it spanned 0.10 (165, 176, 182): the example's sphere and the boulder read
+    as flat discs. Bound 0.3. The sphere's pixels are those its depth brings nearer."""
+    from pipeline.stages import render
+    from pipeline.stages.render import camera_at
+
+    def draw(colliders: bool):
+        spec = ShotSpec.model_validate(tiny_spec(
+            ((0, 0, 0), (0.1, 0.1, 0.1)), ((0, 0, 0), (0.6, 0.4, 0.4)), name="form",
+            shot={"frame_start": 1, "frame_end": 1, "output": str(tmp_path)},
+            colliders=({"type": "sphere", "center": (0.3, 0.1, 0.2), "radius": 0.1, "color": (0.6, 0.6, 0.6)},),
+            render={"look": "water", "resolution": (320, 180), "ssaa": False, "colliders": colliders,
+                    "camera": {"position": (1.2, 0.8, 1.3), "focal_point": (0.3, 0.15, 0.2), "fov": 40.0}}))
+        fr = render.FrameRenderer(spec)
+        try:
+            cam, pl = camera_at(spec.render, 1), fr.pl
+            pl.camera.position, pl.camera.focal_point, pl.camera.up = cam.position, cam.focal_point, cam.up
+            pl.camera.view_angle = cam.fov
+            pl.reset_camera_clipping_range()
+            return pl.screenshot(return_img=True).astype(np.float64), pl.get_image_depth(fill_value=np.inf)
+        finally:
+            fr.close()
+
+    img, depth = draw(True)
+    _img, bare = draw(False)
+    sphere = np.isfinite(depth) & (~np.isfinite(bare) | (depth > bare + 1e-3))
+    assert sphere.sum() > 300
+    p10, p50, p90 = np.percentile(img[sphere] @ [0.2126, 0.7152, 0.0722], [10, 50, 90])
+    assert (p90 - p10) / p50 > 0.3, (p10, p50, p90)
+
+
 def test_a_frame_is_the_same_drawn_first_or_after_another(tmp_path):
     """A renderer is kept across frames (and a Dask worker draws every other frame): a frame
     must not depend on what was drawn before it. (Casting the contact shadow after the fluid

@@ -37,18 +37,21 @@ PNG_LEVEL = 3
 # fluid's color times this, since a clear liquid sends little of the sky's diffuse light back: at
 # 1 the example's water read as pale blue jelly (until 2026-11-26 a fluid's color was also taken
 # half way to clear water's, 0, 0.3, 0.4, which turned honey and oil olive grey). "lamps": the
-# default light rig's intensity, as a share (the sky lights the scene too). "solids": the
-# colliders' colors times this (under the sky a pale collider read flat white).
+# default light rig's intensity, as a share (the sky lights the scene too). "solids": how the
+# colliders are shaded: "phong", by the lamps alone with an ambient share for the sky (under
+# the sky's image-based light a collider took nearly the same light from every side and read
+# as a flat disc: the example's sphere, the boulder, the showcase's rock; Lambert's falloff
+# from the key light gives it its form), or "pbr" with the look's lights and sky.
 LOOKS = {
     "water": {"background": (0.66, 0.73, 0.80), "background_top": (0.52, 0.63, 0.77), "domain": False,
               "ground_color": (0.50, 0.52, 0.54), "ground_size": 30.0, "shading": "ibl", "opacity": 0.55,
               "roughness": 0.05, "metallic": 0.0,
-              "body": 0.35, "lamps": 0.6, "solids": 0.55,
+              "body": 0.35, "lamps": 0.6, "solids": "phong",
               "spray_color": (0.93, 0.97, 1.0), "shadow": 0.45, "absorption": 0.15},
     "clay": {"background": (0.55, 0.55, 0.56), "background_top": (0.45, 0.46, 0.48), "domain": False,
              "ground_color": (0.42, 0.42, 0.43), "ground_size": 30.0, "shading": "phong", "opacity": 1.0,
              "specular": 0.08, "specular_power": 10.0, "ambient": 0.25, "diffuse": 0.8,
-             "color": (0.80, 0.78, 0.74), "spray_color": (0.80, 0.78, 0.74), "shadow": 0.5},
+             "color": (0.80, 0.78, 0.74), "spray_color": (0.80, 0.78, 0.74), "shadow": 0.5, "solids": "phong"},
     "preview": {"background": (0.08, 0.09, 0.11), "background_top": (0.32, 0.36, 0.42), "domain": True,
                 "ground_color": (0.42, 0.42, 0.44), "ground_size": 3.0, "shading": "pbr", "opacity": None,
                 "spray_color": (0.85, 0.9, 1.0)},
@@ -123,10 +126,12 @@ class FrameRenderer:
             box = pv.Box(bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])).outline()
             pl.add_mesh(box, color=(0.78, 0.8, 0.84), line_width=1.5, lighting=False)
         colliders = collider_meshes(spec) if r.colliders else []
-        for mesh, col in colliders:
-            actor = pl.add_mesh(mesh, color=tuple(look.get("solids", 1.0) * c for c in col.color), pbr=True,
-                                metallic=0.0, roughness=0.6,
-                                smooth_shading=col.type != "box")   # a box keeps its hard edges
+        if look.get("solids") == "phong":
+            solid = dict(ambient=0.35, diffuse=0.8, specular=0.08, specular_power=12.0)
+        else:
+            solid = dict(pbr=True, metallic=0.0, roughness=0.6)
+        for mesh, col in colliders:      # (a box keeps its hard edges)
+            actor = pl.add_mesh(mesh, color=col.color, smooth_shading=col.type != "box", **solid)
             # drawn a little nearer than it is: the water's mesh hugs a submerged collider, and
             # where the two coincide their depths fought, speckling the collider. (The mode is
             # VTK's one global setting, off by default; the offset is this mapper's own.)
