@@ -100,6 +100,14 @@ def with_level_set(paths, frame: int):
     return m
 
 
+def facing_camera(spec, m) -> np.ndarray:
+    """How squarely each vertex of mesh m faces the job's camera: -n . ray (1 head on, < 0
+    turned away)."""
+    ray = m.points - np.asarray(spec.render.camera.position)
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    return -np.einsum("ij,ij->i", m.normals, ray)
+
+
 def quiet():
     return Progress(stream=open(os.devnull, "w"), interactive=False)
 
@@ -240,10 +248,7 @@ def test_water_is_as_clear_as_it_is_shallow(tmp_path):
     fr = render.FrameRenderer(spec)
     try:
         alpha = fr._water_alpha(2, m.points, m.normals, read_level_set(paths.surface_vdb(2)))
-        eye = np.asarray(spec.render.camera.position)
-        ray = m.points - eye
-        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
-        facing = -np.einsum("ij,ij->i", m.normals, ray)
+        facing = facing_camera(spec, m)
         look = fr.look
         assert (alpha[facing < 0] == 0).all()
         assert (alpha[facing > 0] >= 0.5 * look["opacity"] - 1e-9).all()
@@ -282,16 +287,13 @@ def test_a_colored_liquid_takes_its_color_at_its_transmission_depth(tmp_path):
         blended = alpha[front, None] * rgb[front] + (1 - alpha[front, None]) * g
         np.testing.assert_allclose(blended[above], g * through[above], atol=1e-9)
         assert (alpha[~front] == 0).all() and above.mean() > 0.5
-        eye = np.asarray(spec.render.camera.position)
-        ray = m.points - eye
-        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
-        facing = -np.einsum("ij,ij->i", m.normals, ray)
+        facing = facing_camera(spec, m)[front]          # the front vertices: middle and rim
         middle, rim = facing > 0.95, (facing > 0) & (facing < 0.3)
-        assert water[facing[front] > 0.95].mean() > 2 * water[(facing[front] > 0) & (facing[front] < 0.3)].mean()
-        assert alpha[middle].mean() > alpha[rim].mean() + 0.2
+        assert water[middle].mean() > 2 * water[rim].mean()
+        assert alpha[front][middle].mean() > alpha[front][rim].mean() + 0.2
         transmitted = g * through        # what the eye gets through the middle and the rim
         red_share = lambda c: c[:, 0] / c.sum(axis=1)      # noqa: E731
-        mid, edge = transmitted[facing[front] > 0.95], transmitted[(facing[front] > 0) & (facing[front] < 0.3)]
+        mid, edge = transmitted[middle], transmitted[rim]
         assert mid.sum(axis=1).mean() < 0.6 * edge.sum(axis=1).mean()
         assert red_share(mid).mean() > red_share(edge).mean() + 0.1
     finally:
@@ -307,7 +309,6 @@ def test_a_collider_has_its_form_under_the_water_look(tmp_path):
     from every side) it spanned 0.10 (165, 176, 182): the example's sphere and the boulder read
     as flat discs. Bound 0.3. The sphere's pixels are those its depth brings nearer."""
     from pipeline.stages import render
-    from pipeline.stages.render import camera_at
 
     def draw(colliders: bool):
         spec = ShotSpec.model_validate(tiny_spec(
@@ -318,11 +319,8 @@ def test_a_collider_has_its_form_under_the_water_look(tmp_path):
                     "camera": {"position": (1.2, 0.8, 1.3), "focal_point": (0.3, 0.15, 0.2), "fov": 40.0}}))
         fr = render.FrameRenderer(spec)
         try:
-            cam, pl = camera_at(spec.render, 1), fr.pl
-            pl.camera.position, pl.camera.focal_point, pl.camera.up = cam.position, cam.focal_point, cam.up
-            pl.camera.view_angle = cam.fov
-            pl.reset_camera_clipping_range()
-            return pl.screenshot(return_img=True).astype(np.float64), pl.get_image_depth(fill_value=np.inf)
+            fr.place_camera(1)
+            return fr.pl.screenshot(return_img=True).astype(np.float64), fr.pl.get_image_depth(fill_value=np.inf)
         finally:
             fr.close()
 

@@ -284,7 +284,7 @@ class FrameRenderer:
                     rgb = np.tile(np.asarray(color, np.float64), (len(alpha), 1))
                 # (VTK's PBR decodes vertex colors as sRGB and takes a property's color as
                 # linear: encoded, the two paths give the same color)
-                srgb = np.clip(rgb, 0.0, 1.0) ** (1 / 2.2)
+                srgb = rgb ** (1 / 2.2)
                 poly.point_data["rgba"] = np.column_stack([np.round(255 * srgb), np.round(255 * alpha)]).astype(np.uint8)
                 kw.update(scalars="rgba", rgba=True)
             else:
@@ -380,15 +380,19 @@ class FrameRenderer:
             # first frame a renderer drew came out up to 3 levels off the same frame drawn later
             self.shadow.cast([m for m, _kw in meshes])
         self.fluid_actors = [pl.add_mesh(mesh, **kw) for mesh, kw in meshes]
-        cam = camera_at(r, frame)
+        self.place_camera(frame)
+        if r.motion_blur < 2:
+            return pl.screenshot(return_img=True)
+        return self._motion_blurred([m for m, _kw in meshes], r.motion_blur, r.shutter / self.spec.shot.fps)
+
+    def place_camera(self, frame: int) -> None:
+        """The plotter's camera where the job puts it at this frame."""
+        cam, pl = camera_at(self.spec.render, frame), self.pl
         pl.camera.position = cam.position
         pl.camera.focal_point = cam.focal_point
         pl.camera.up = cam.up
         pl.camera.view_angle = cam.fov
         pl.reset_camera_clipping_range()
-        if r.motion_blur < 2:
-            return pl.screenshot(return_img=True)
-        return self._motion_blurred([m for m, _kw in meshes], r.motion_blur, r.shutter / self.spec.shot.fps)
 
     def _motion_blurred(self, meshes, samples: int, open_s: float) -> np.ndarray:
         """The mean of `samples` renders, each with the fluid moved along its velocity to an
