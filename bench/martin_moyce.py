@@ -1,0 +1,134 @@
+"""Martin & Moyce's collapsing column, the surge front and the column's height side by side.
+
+Martin & Moyce 1952, "An experimental study of the collapse of liquid columns on a rigid
+horizontal plane", Phil. Trans. R. Soc. A 244, 312-324, the n^2 = 2, a = 2.25 in column: the
+surge front Z = z / a against T = t sqrt(2 g / a) (their Fig. 3, as digitised in PySPH's
+pysph/examples/db_exp_data.py) and the residual column's height at the back wall H / (n^2 a)
+against tau = t sqrt(g / a) (their Table 6). The column is a wide and 2a high in a slice of a
+frictionless tank, inviscid, as tests/test_dfsph.py sets it up (which checks the first eight
+front points to 20 % and the column down to H = 0.56 to 3 %). Besides the two comparisons it
+prints the release time the column's height implies (the shift of the experiment's clock that
+fits the column best, with its spread) and the shift each front point would need.
+
+--stokes-floor F probes one explanation of the front's lead: each step, the particles touching
+the floor (within 1.5 r) lose velocity to the floor's laminar boundary layer, which the
+particles cannot resolve: Stokes' first problem, wall shear mu u / sqrt(pi nu t), t the time
+since the floor under the particle was first wet (at least a particle's crossing time), nu
+F times water's. A probe, not a model the solver has.
+
+  .venv/bin/python bench/martin_moyce.py                      # r = 5 mm, a 1.6 m tank, to T = 9.2
+  .venv/bin/python bench/martin_moyce.py --radius 0.0025 --depth 0.02
+  .venv/bin/python bench/martin_moyce.py --tank 0.8 --stokes-floor 1
+
+Not a test: figures and what they showed are in bench/RESULTS.md (thirty-first session).
+"""
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+G = 9.81
+# Fig. 3, n^2 = 2, a = 2.25 in: (T, Z)
+FRONT = np.array([(0.832, 1.217), (1.219, 1.474), (1.997, 2.292), (2.547, 2.995), (3.345, 4.134),
+                  (4.034, 4.944), (4.418, 5.881), (5.091, 6.980), (5.685, 7.945), (6.306, 8.966),
+                  (6.822, 9.986), (7.439, 10.963), (8.031, 11.977), (8.633, 13.005), (9.237, 13.970)])
+# Table 6, n^2 = 2, a = 2.25 in: (tau, H)
+COLUMN = np.array([(0.56, 0.94), (0.77, 0.89), (0.93, 0.83), (1.08, 0.78), (1.28, 0.72), (1.46, 0.67),
+                   (1.66, 0.61), (1.84, 0.56), (2.00, 0.50), (2.21, 0.44), (2.45, 0.39), (2.70, 0.33),
+                   (3.06, 0.28), (3.44, 0.22), (4.20, 0.17), (5.25, 0.11)])
+
+
+def column_solver(a: float, r: float, tank: float, depth: float):
+    """The pipeline's DFSPH solver for the column a x 2a x depth in a frictionless tank."""
+    from pipeline.spec import ShotSpec
+    from pipeline.stages.sim import initial_state, make_solver, solver_params
+
+    spec = ShotSpec.model_validate({
+        "shot": {"name": "martin_moyce"}, "sim": {"particle_radius": r},
+        "domain": {"min": (0, 0, 0), "max": (tank, 2.5 * a, depth), "friction": 0.0},
+        "fluids": ({"name": "water", "viscosity": 0.0, "blocks": ({"min": (0, 0, 0), "max": (a, 2 * a, depth)},)},)})
+    params = solver_params(spec)
+    return make_solver(spec, params, initial_state(spec, params))
+
+
+class StokesFloor:
+    """The floor's unresolved laminar boundary layer, applied after each step (see the module's
+    docstring): the floor is cut into cells 2r long that remember when they were first wet."""
+
+    def __init__(self, nu: float, r: float, tank: float):
+        self.nu, self.r = nu, r
+        self.wet = np.full(int(tank / (2 * r)) + 2, np.inf)
+
+    def __call__(self, s, t: float, dt: float) -> None:
+        p, v = s.position.to_numpy(), s.velocity.to_numpy()
+        low = np.where(p[:, 1] < 1.5 * self.r)[0]
+        cell = np.clip((p[low, 0] / (2 * self.r)).astype(int), 0, len(self.wet) - 1)
+        self.wet[cell] = np.minimum(self.wet[cell], t)
+        u = np.hypot(v[low, 0], v[low, 2])
+        wet_for = np.maximum(t - self.wet[cell], 2 * self.r / np.maximum(u, 1e-3))
+        rate = self.nu / (2 * self.r * np.sqrt(np.pi * self.nu * wet_for))     # tau / (rho 2r u)
+        keep = 1.0 / (1.0 + rate * dt)                                           # implicit: never reverses
+        v[low, 0] *= keep
+        v[low, 2] *= keep
+        s.velocity.from_numpy(v.astype(np.float32))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--a", type=float, default=0.1, help="column width, m (default 0.1; height 2a)")
+    ap.add_argument("--radius", type=float, default=0.005, help="particle radius, m (default 0.005)")
+    ap.add_argument("--tank", type=float, default=1.6, help="tank length, m (default 1.6)")
+    ap.add_argument("--depth", type=float, default=0.05, help="the slice's depth, m (default 0.05)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--stokes-floor", type=float, default=0.0, metavar="F",
+                    help="the floor's boundary layer at F times water's viscosity (default 0: none)")
+    args = ap.parse_args()
+
+    from solver.backend import init_taichi
+    init_taichi("cpu", args.threads)
+    a, r = args.a, args.radius
+    s = column_solver(a, r, args.tank, args.depth)
+    floor = StokesFloor(1e-6 * args.stokes_floor, r, args.tank) if args.stokes_floor > 0 else None
+    print(f"Martin & Moyce, n^2 = 2: a = {a} m, r = {r} m, {s.n} particles, tank {args.tank} m, "
+          f"slice {args.depth} m, floor boundary layer x{args.stokes_floor:g}")
+
+    front_scale, column_scale = np.sqrt(2 * G / a), np.sqrt(G / a)
+    reach = (args.tank - 4 * r) / a                       # the front points the tank holds
+    samples = sorted([(T / front_scale, "front", T, Z) for T, Z in FRONT if Z < reach] +
+                     [(tau / column_scale, "column", tau, H) for tau, H in COLUMN])
+    rows = {"front": [], "column": []}
+    for t_at, kind, x_exp, y_exp in samples:
+        while s.time < t_at - 1e-9:
+            dt = s.step(t_at)
+            if floor:
+                floor(s, s.time, dt)
+        p = s.position.to_numpy()
+        if kind == "front":
+            y_sim = (np.sort(p[:, 0])[-3] + r) / a            # the leading edge, two stray particles ignored
+        else:
+            y_sim = (np.sort(p[p[:, 0] < 2 * r, 1])[-2] + r) / (2 * a)
+        rows[kind].append((x_exp, y_exp, y_sim))
+        print(f"  {kind:6s} {'T' if kind == 'front' else 'tau'} = {x_exp:.3f}: experiment {y_exp:.3f}, "
+              f"sphshot {y_sim:.3f} ({100 * (y_sim / y_exp - 1):+.1f} %)", flush=True)
+
+    # The experiment's clock, from each measure: the shift d (s, at this a) with y_sim(t) ~ y_exp(t + d)
+    for kind, scale in (("front", front_scale), ("column", column_scale)):
+        x, y, y_sim = (np.array(c) for c in zip(*rows[kind]))
+        slope = np.gradient(y, x)
+        shift = (y_sim - y) / slope / scale * 1e3
+        print(f"{kind}: sphshot ahead by {' '.join(f'{d:+.1f}' for d in shift)} ms of the experiment's time")
+        if kind == "column":
+            early = x <= 1.84 + 1e-9                            # while the column is many particles across
+            d = np.sum(slope[early] * (y_sim - y)[early]) / np.sum(slope[early] ** 2)
+            spread = np.sqrt(np.sum(((y_sim - y) - slope * d)[early] ** 2) / max(early.sum() - 1, 1)
+                             / np.sum(slope[early] ** 2))
+            print(f"column down to H = 0.56: the release fits at {d / scale * 1e3:+.2f} +- "
+                  f"{spread / scale * 1e3:.2f} ms")
+
+
+if __name__ == "__main__":
+    main()
