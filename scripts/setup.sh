@@ -7,8 +7,11 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
 # 1. System packages: Python venv support, OpenVDB's Python module, Mesa EGL/OSMesa for
 #    off-screen rendering with no display and no GPU, and OpenVDB's C++ headers with a compiler
-#    for the one thing pyopenvdb cannot write, spray as VDB points (step 4).
-APT_PKGS="python3-venv python3-openvdb libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 g++ libopenvdb-dev libboost-dev"
+#    for the one thing pyopenvdb cannot write, spray as VDB points (step 4); the Vulkan loader and
+#    Mesa's Vulkan drivers, whose software device (lavapipe) lets the tests run the kernels through
+#    Taichi's Vulkan backend on a machine with no GPU (tests/test_gpu.py).
+APT_PKGS="python3-venv python3-openvdb libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 g++ libopenvdb-dev libboost-dev
+          libvulkan1 mesa-vulkan-drivers"
 missing=""
 for p in $APT_PKGS; do dpkg -s "$p" >/dev/null 2>&1 || missing="$missing $p"; done
 if [ -n "$missing" ]; then

@@ -7,6 +7,8 @@ import glob
 import io
 import logging
 import os
+import subprocess
+import sys
 
 from .errors import SolverError
 
@@ -22,6 +24,39 @@ class BackendUnavailable(SolverError):
 def _gpu_device_present() -> bool:
     """A GPU's device node (NVIDIA, or a DRM render node for AMD/Intel) exists."""
     return bool(glob.glob("/dev/nvidia[0-9]*") or glob.glob("/dev/dri/renderD*"))
+
+
+def _runs_our_kernels() -> bool:
+    """The device Taichi started on runs what the kernels need besides float32: float64 (the
+    step's clock, clock.py) and int64 atomics (the surfacer's fixed-point sums). A Vulkan device
+    without them (Intel's Xe GPUs have no float64) would fail at the first launch; this small
+    kernel fails here instead."""
+    import taichi as ti
+
+    from .probe import k_probe
+
+    try:
+        f, k = ti.ndarray(ti.f64, 1), ti.ndarray(ti.i64, 1)
+        k_probe(f, k)
+        return bool(f.to_numpy()[0] == 1.5 and k.to_numpy()[0] == 6 << 33)
+    except Exception:       # noqa: BLE001 - whatever the device's compiler or driver says
+        return False
+
+
+def vulkan_starts(software: bool = False) -> bool:
+    """Taichi starts on a Vulkan device here; unless `software`, one that is not Mesa's software
+    device (lavapipe). Asked in a child process: a failed start would leave this process's
+    Taichi uninitialised, and the Vulkan loader reads which drivers to leave out once a process."""
+    probe = ("import taichi as ti; ti.init(arch=ti.vulkan, offline_cache=False); "
+             "import sys; sys.exit(0 if ti.lang.impl.current_cfg().arch == ti.vulkan else 1)")
+    env = {**os.environ, "TI_LOG_LEVEL": "error"}
+    if not software:
+        env["VK_LOADER_DRIVERS_DISABLE"] = "*lvp*"
+    try:
+        return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,
+                              timeout=120).returncode == 0
+    except (OSError, subprocess.TimeoutExpired):
+        return False
 
 
 def allowed_cpus() -> list[int]:
@@ -64,21 +99,27 @@ def init_taichi(backend: str = "auto", threads: int = 0) -> str:
     if backend == "auto" and not _gpu_device_present():
         # Mesa's lavapipe is a Vulkan device too, but a software one: slower than Taichi's CPU path
         order = ["cpu"]
+    elif backend == "auto" and not glob.glob("/dev/nvidia[0-9]*") and not vulkan_starts():
+        order = ["cpu"]       # a render node with no GPU's Vulkan driver behind it (a VM's, say)
     # By default the cores this process may use: a Dask worker's share (workers.PinToShare), a
     # SLURM allocation, a taskset. A thread count in the job file wins.
     n_threads = threads or len(allowed_cpus())
-    chosen = None
+    chosen, lacking = None, []
     for name in order:
         arch = {"cuda": ti.cuda, "vulkan": ti.vulkan, "cpu": ti.cpu}[name]
-        with contextlib.redirect_stdout(io.StringIO()):   # ti.init prints "Starting on arch=..."
+        with contextlib.redirect_stdout(io.StringIO()):
+            # ti.init prints "Starting on arch=..."; its log level: TI_LOG_LEVEL, above
             ti.init(arch=arch, cpu_max_num_threads=n_threads, default_fp=ti.f32, default_ip=ti.i32,
-                    random_seed=0, offline_cache=True)   # log level: TI_LOG_LEVEL, above
+                    random_seed=0, offline_cache=True)
         if current_arch() == name:
-            chosen = name
-            break
+            if name != "vulkan" or _runs_our_kernels():
+                chosen = name
+                break
+            lacking.append(name)
         ti.reset()
     if chosen is None:
-        raise BackendUnavailable(f"sim.backend: {backend!r} is not available on this machine "
+        why = " (its device lacks float64 or int64 atomics)" if lacking else ""
+        raise BackendUnavailable(f"sim.backend: {backend!r} is not available on this machine{why} "
                                  f"(expected one of {order}); use backend = \"auto\" or \"cpu\"")
     _current, _arch_name = want, chosen
     log.info("taichi backend: %s%s", chosen, f" ({n_threads} thread(s))" if chosen == "cpu" else "")

@@ -238,15 +238,16 @@ def k_rebuild(position: V3, ref: V3, velocity: V3, acceleration: V3, fluid: I1, 
               position_o: V3, ref_o: V3, velocity_o: V3, acceleration_o: V3, fluid_o: I1, id_o: I1,
               cell: I1, count: I1, fill: I1, start: I1, order: I1, sums: I1, sums2: I1,
               verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, reach: ti.f32,
-              origin: vec3, inv_cell: ti.f32, dims: ivec3, longest: D1, at: ti.i32,
-              from_position: ti.template()):
+              origin: vec3, inv_cell: ti.f32, dims: ivec3, longest: D1, at: ti.i32, n: ti.i32, nb: ti.i32,
+              nb2: ti.i32, from_position: ti.template()):
     """The sort and the lists of SPHSolver.build_lists in one launch (its loops run in order on
     the device, as the ten launches they replace did; see wcsph.k_step for why): the counting
     sort into the *_o arrays, then k_neighbours' lists at the sorted reference positions. With
     `from_position` the reference positions are the current ones (ref = position, then sort).
     The cell scan has two levels of SCAN_BLOCK-cell runs and a serial scan of the top level's
-    totals (exact: integers); each cell's particles keep their previous order (sort_runs_pass)."""
-    n, nb, nb2 = count.shape[0], sums.shape[0], sums2.shape[0]
+    totals (exact: integers); each cell's particles keep their previous order (sort_runs_pass).
+    n, nb, nb2: the lengths of count, sums and sums2, as arguments: a loop bound computed from an
+    array's shape inside the kernel does not compile for Vulkan (SPIR-V) in Taichi 1.7."""
     source = ti.static(position if from_position else ref)      # the reference positions
     clear_pass(count, fill)
     count_pass(source, cell, count, origin, inv_cell, dims)

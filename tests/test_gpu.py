@@ -1,4 +1,7 @@
-"""GPU backends (run by bench/gpu.sh on a lent GPU machine; skipped elsewhere)."""
+"""The device backends against the CPU: CUDA where an NVIDIA GPU is (bench/gpu.sh runs these on a
+lent GPU machine), Vulkan wherever Taichi can start a Vulkan device, Mesa's software one
+(lavapipe, which scripts/setup.sh installs) included: its kernels go through Taichi's SPIR-V
+code generator, as on an AMD or Intel GPU, so this machine checks that path without a GPU."""
 from __future__ import annotations
 
 import glob
@@ -9,9 +12,15 @@ import pytest
 
 from conftest import tiny_spec
 from pipeline.spec import ShotSpec
+from solver.backend import vulkan_starts
 
-pytestmark = [pytest.mark.gpu,
-              pytest.mark.skipif(not glob.glob("/dev/nvidia[0-9]*"), reason="no NVIDIA GPU on this machine")]
+pytestmark = [pytest.mark.gpu]
+
+
+NVIDIA = bool(glob.glob("/dev/nvidia[0-9]*"))
+ONLY_CUDA = pytest.mark.skipif(not NVIDIA, reason="no NVIDIA GPU on this machine")
+ONLY_VULKAN = pytest.mark.skipif(not vulkan_starts(software=True), reason="no Vulkan device here")
+DEVICES = [pytest.param("cuda", marks=ONLY_CUDA), pytest.param("vulkan", marks=ONLY_VULKAN)]
 
 
 BOULDER = Path(__file__).resolve().parents[1] / "jobs" / "assets" / "boulder.obj"
@@ -34,12 +43,13 @@ def run_on(backend: str, t_end: float, mesh: bool = False, solver: str = "dfsph"
     return s.snapshot()
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("solver", ["dfsph", "wcsph"])
-def test_cuda_matches_cpu_early_on(solver):
+def test_device_matches_cpu_early_on(solver, device):
     """Before the flow turns chaotic (first 20 ms), CUDA and CPU agree: WCSPH to float32
     round-off amplified over about 100 steps (positions within 1e-6 m); DFSPH within a twentieth
     of a radius (see below)."""
-    gpu = run_on("cuda", 0.02, solver=solver)
+    gpu = run_on(device, 0.02, solver=solver)
     cpu = run_on("cpu", 0.02, solver=solver)
     # WCSPH: float32 round-off only. DFSPH's solves stop at an error bound, so round-off can
     # change a step's sweep count and the velocities by one sweep's correction: on the H200
@@ -48,7 +58,8 @@ def test_cuda_matches_cpu_early_on(solver):
     np.testing.assert_allclose(gpu["density"], cpu["density"], rtol=1e-3 if solver == "wcsph" else 1e-2)
 
 
-def test_cuda_mesh_collider_matches_cpu():
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_mesh_collider_matches_cpu(device):
     """The mesh collider's distance grid on CUDA: the block has reached the boulder by 0.15 s;
     no particle is inside it on either backend, and the mean positions agree within a radius
     (the flow is chaotic by then, so particle by particle they do not)."""
@@ -56,24 +67,26 @@ def test_cuda_mesh_collider_matches_cpu():
     pytest.importorskip("pyopenvdb", reason="OpenVDB (the mesh's distance grid) is not installed on this GPU machine")
     from pipeline.stages.sim import solver_params
     from solver.boundaries import collider_clearance
-    out = {b: run_on(b, 0.15, mesh=True) for b in ("cuda", "cpu")}
+    out = {b: run_on(b, 0.15, mesh=True) for b in (device, "cpu")}
     params = solver_params(small_dambreak(True))
     for b, snap in out.items():
         assert collider_clearance(params, snap["position"]).min() > 0, b
-    np.testing.assert_allclose(out["cuda"]["position"].mean(0), out["cpu"]["position"].mean(0), atol=0.01)
+    np.testing.assert_allclose(out[device]["position"].mean(0), out["cpu"]["position"].mean(0), atol=0.01)
 
 
-def test_cuda_mesh_collider_normals_match_the_trilinear_field():
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_mesh_collider_normals_match_the_trilinear_field(device):
     """tests/test_solver.py's check of a mesh collider's distance and normal, on CUDA (a distance
     grid made in NumPy: no OpenVDB needed). Before the tolerance in boundaries.mesh_sdf, 86 % of
     the points near the showcase's boulder had a normal unlike the CPU's on the H200."""
     from solver.backend import init_taichi
-    init_taichi("cuda", 0)
+    init_taichi(device, 0)
     from test_solver import test_mesh_collider_normals_match_the_trilinear_field as check
     check()
 
 
-def test_cuda_analytic_colliders_match_cpu():
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_analytic_colliders_match_cpu(device):
     """Sphere, box and capsule colliders' distance and normal on CUDA against the CPU's at points
     around each (the mesh collider's normals were once wrong on CUDA alone; these have no test
     of their own there). Float32 on both: within 1e-6 m and 1e-5."""
@@ -92,14 +105,15 @@ def test_cuda_analytic_colliders_match_cpu():
     for k in range(3):
         one = dataclasses.replace(params, colliders=(params.colliders[k],))
         got = {}
-        for backend in ("cuda", "cpu"):
+        for backend in (device, "cpu"):
             init_taichi(backend, 1 if backend == "cpu" else 0)
             got[backend] = collider_probe(one, pts)
-        np.testing.assert_allclose(got["cuda"][0], got["cpu"][0], atol=1e-6, err_msg=str(k))
-        np.testing.assert_allclose(got["cuda"][1], got["cpu"][1], atol=1e-5, err_msg=str(k))
+        np.testing.assert_allclose(got[device][0], got["cpu"][0], atol=1e-6, err_msg=str(k))
+        np.testing.assert_allclose(got[device][1], got["cpu"][1], atol=1e-5, err_msg=str(k))
 
 
-def test_cuda_implicit_viscosity_matches_cpu():
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_implicit_viscosity_matches_cpu(device):
     """A viscosity solved implicitly (solver.viscosity's conjugate gradients) with no-slip walls,
     on CUDA: tests/test_dfsph.py's channel mode at 10 Pa s, r = 5 mm, where every step is past
     the explicit limit; after 0.05 s its amplitude agrees with the CPU's within 1 % (the CG stops
@@ -107,17 +121,18 @@ def test_cuda_implicit_viscosity_matches_cpu():
     from solver.backend import init_taichi
     from test_dfsph import shear_wave
     decay = {}
-    for backend in ("cuda", "cpu"):
+    for backend in (device, "cpu"):
         init_taichi(backend, 1 if backend == "cpu" else 0)
         s, amplitude, _rate = shear_wave(10.0, 0.005, True, "sinsin")
         a0 = amplitude()
         s.advance_to(0.05)
         assert s.frame_report()["viscosity_steps"] > 0, backend
         decay[backend] = amplitude() / a0
-    assert abs(decay["cuda"] / decay["cpu"] - 1.0) < 0.01, decay
+    assert abs(decay[device] / decay["cpu"] - 1.0) < 0.01, decay
 
 
-def test_cuda_akinci_tension_with_the_walls_images_matches_cpu():
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_akinci_tension_with_the_walls_images_matches_cpu(device):
     """Akinci's cohesion and curvature with the walls' images (dfsph.image_tension) on CUDA:
     tests/test_dfsph.py's lattice in a closed box, accelerations before any step, against the
     CPU's, particle by particle; float32 sums in another order: within 1e-3 m/s^2 of
@@ -125,13 +140,25 @@ def test_cuda_akinci_tension_with_the_walls_images_matches_cpu():
     from solver.backend import init_taichi
     from test_dfsph import akinci_box_accelerations
     got = {}
-    for backend in ("cuda", "cpu"):
+    for backend in (device, "cpu"):
         init_taichi(backend, 1 if backend == "cpu" else 0)
         got[backend] = akinci_box_accelerations(0.01)
-    np.testing.assert_allclose(got["cuda"][0], got["cpu"][0], atol=1e-7)
-    np.testing.assert_allclose(got["cuda"][1], got["cpu"][1], atol=1e-3)
+    np.testing.assert_allclose(got[device][0], got["cpu"][0], atol=1e-7)
+    np.testing.assert_allclose(got[device][1], got["cpu"][1], atol=1e-3)
 
 
+@ONLY_VULKAN
+@pytest.mark.skipif(NVIDIA or vulkan_starts(), reason="a GPU here: auto takes it")
+def test_auto_leaves_the_software_vulkan_device_to_an_explicit_ask(monkeypatch):
+    """With a render node (as in a VM) but no GPU's Vulkan driver, "auto" must not land on
+    Mesa's software device, several times slower than Taichi's CPU backend; "vulkan" may."""
+    from solver import backend
+    monkeypatch.setattr(backend, "_gpu_device_present", lambda: True)
+    assert backend.init_taichi("auto", 1) == "cpu"
+    assert backend.init_taichi("vulkan", 0) == "vulkan"
+
+
+@ONLY_CUDA
 def test_auto_backend_picks_cuda():
     from solver.backend import init_taichi
     assert init_taichi("auto", 0) == "cuda"
@@ -159,14 +186,15 @@ def _surface(backend: str, anisotropic: bool = False):
     return field.color.copy(), field.velocity.copy(), field.velocity_ids, mesh
 
 
-def test_cuda_surfacer_matches_cpu():
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_surfacer_matches_cpu(device):
     """The surfacer on CUDA (fixed-point atomic scatter, device-resident arrays, parallel
     normals) against the CPU's (phased float scatter): the color within 2e-5 (float32 round-off
     of sums of ~50 terms), so the same blocks and, but for vertices on edges whose ends sit within
     that of the iso value, the same mesh (vertex counts within 0.1 %); velocities where the color
     is over 1e-3 within 1e-4 m/s; CUDA twice gives the same bits."""
-    gpu_color, gpu_vel, gpu_ids, gpu_mesh = _surface("cuda")
-    again_color, _v, _i, again_mesh = _surface("cuda")
+    gpu_color, gpu_vel, gpu_ids, gpu_mesh = _surface(device)
+    again_color, _v, _i, again_mesh = _surface(device)
     cpu_color, cpu_vel, cpu_ids, cpu_mesh = _surface("cpu")
     np.testing.assert_array_equal(gpu_color, again_color)
     np.testing.assert_array_equal(gpu_mesh.normals, again_mesh.normals)
@@ -182,12 +210,13 @@ def test_cuda_surfacer_matches_cpu():
     np.testing.assert_allclose(gpu_vel[:-1][solid], cpu_vel[:-1][solid], atol=1e-4)   # speeds ~1 m/s
 
 
-def test_cuda_anisotropic_surfacer_matches_cpu():
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_anisotropic_surfacer_matches_cpu(device):
     """The anisotropic kernels (surfacing/anisotropy.py: covariance and SVD per particle, the
     centres smoothed in two passes, then the stretched splat) on CUDA against the CPU: the
     kernel shapes come from float32 SVDs that may round differently, so the color within 2e-4
     (not 2e-5), the same blocks, vertex counts within 0.5 %."""
-    gpu_color, _gv, gpu_ids, gpu_mesh = _surface("cuda", anisotropic=True)
+    gpu_color, _gv, gpu_ids, gpu_mesh = _surface(device, anisotropic=True)
     cpu_color, _cv, cpu_ids, cpu_mesh = _surface("cpu", anisotropic=True)
     assert gpu_color.shape == cpu_color.shape
     np.testing.assert_allclose(gpu_color, cpu_color, atol=2e-4)
