@@ -21,9 +21,13 @@ class BackendUnavailable(SolverError):
     """The asked-for Taichi backend cannot start on this machine."""
 
 
+def _nvidia_present() -> bool:
+    return bool(glob.glob("/dev/nvidia[0-9]*"))
+
+
 def _gpu_device_present() -> bool:
     """A GPU's device node (NVIDIA, or a DRM render node for AMD/Intel) exists."""
-    return bool(glob.glob("/dev/nvidia[0-9]*") or glob.glob("/dev/dri/renderD*"))
+    return _nvidia_present() or bool(glob.glob("/dev/dri/renderD*"))
 
 
 def _runs_our_kernels() -> bool:
@@ -99,7 +103,7 @@ def init_taichi(backend: str = "auto", threads: int = 0) -> str:
     if backend == "auto" and not _gpu_device_present():
         # Mesa's lavapipe is a Vulkan device too, but a software one: slower than Taichi's CPU path
         order = ["cpu"]
-    elif backend == "auto" and not glob.glob("/dev/nvidia[0-9]*") and not vulkan_starts():
+    elif backend == "auto" and not _nvidia_present() and not vulkan_starts():
         order = ["cpu"]       # a render node with no GPU's Vulkan driver behind it (a VM's, say)
     # By default the cores this process may use: a Dask worker's share (workers.PinToShare), a
     # SLURM allocation, a taskset. A thread count in the job file wins.
