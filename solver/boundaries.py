@@ -192,8 +192,11 @@ def collider_sdf(kind: ti.i32, prm: ti.template(), sdf: ti.template(), k: ti.i32
                 axis = 1
             elif q.z >= q.x and q.z >= q.y:
                 axis = 2
-            n = vec3(0.0)
-            n[axis] = 1.0 if d[axis] >= 0 else -1.0
+            # the face's normal without writing a vector at a run-time index (Taichi 1.7's
+            # SPIR-V code generator breaks on that in a kernel of several loops)
+            sign = ti.select(d >= 0.0, 1.0, -1.0)
+            n = vec3(ti.select(axis == 0, sign.x, 0.0), ti.select(axis == 1, sign.y, 0.0),
+                     ti.select(axis == 2, sign.z, 0.0))
     elif kind == MESH:
         phi, n = mesh_sdf(prm, sdf, k, p)
     else:  # capsule: segment a-b with radius

@@ -72,10 +72,7 @@ class SPHSolver:
     INTERLEAVED_LISTS: bool | None = None     # None: by the backend (see _grow_neighbours)
     BATCH: int | None = None                  # gated steps per read of the controller; None: by the backend
     FUSED: bool | None = None                 # a step, and a list rebuild, in one launch each (wcsph.k_step,
-                                              # neighbours.k_rebuild); None: on CUDA. (Taichi 1.7's SPIR-V
-                                              # code generator breaks on k_step, any two of its passes in
-                                              # one kernel: "IR broken: MatrixPtrStmt"; on Vulkan the
-                                              # passes are launched one by one.)
+                                              # neighbours.k_rebuild); None: on a GPU
     LISTS_CHECKED_AT_ONCE = False             # WCSPH: an overflow is read with the controller, after the batch
     SKIN = SKIN                               # Verlet skin in units of h (neighbours.SKIN)
 
@@ -124,7 +121,7 @@ class SPHSolver:
         # neighbour lists: room for 1.5x the fill lattice's pairs within h + skin, grown on overflow
         self.nb_cap = 0
         self.on_cpu = current_arch() == "cpu"
-        self.fused = (current_arch() == "cuda") if self.FUSED is None else self.FUSED
+        self.fused = (not self.on_cpu) if self.FUSED is None else self.FUSED
         self._grow_neighbours(int(1.5 * 4.0 / 3.0 * math.pi * ((h + self.skin) / params.spacing) ** 3) + 8)
         self.lists_built = 0
 
