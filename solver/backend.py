@@ -21,13 +21,14 @@ class BackendUnavailable(SolverError):
     """The asked-for Taichi backend cannot start on this machine."""
 
 
-def _nvidia_present() -> bool:
+def nvidia_present() -> bool:
+    """An NVIDIA GPU's device node exists."""
     return bool(glob.glob("/dev/nvidia[0-9]*"))
 
 
-def _gpu_device_present() -> bool:
-    """A GPU's device node (NVIDIA, or a DRM render node for AMD/Intel) exists."""
-    return _nvidia_present() or bool(glob.glob("/dev/dri/renderD*"))
+def _render_node_present() -> bool:
+    """A DRM render node exists (an AMD or Intel GPU's, or a VM's)."""
+    return bool(glob.glob("/dev/dri/renderD*"))
 
 
 def _runs_our_kernels() -> bool:
@@ -100,11 +101,10 @@ def init_taichi(backend: str = "auto", threads: int = 0) -> str:
         # threads then failed a launch with "argument not found".
         gc.collect()
     order = {"auto": ["cuda", "vulkan", "cpu"], "cpu": ["cpu"], "cuda": ["cuda"], "vulkan": ["vulkan"]}[backend]
-    if backend == "auto" and not _gpu_device_present():
-        # Mesa's lavapipe is a Vulkan device too, but a software one: slower than Taichi's CPU path
+    if backend == "auto" and not nvidia_present() and not (_render_node_present() and vulkan_starts()):
+        # no GPU, or a render node with no GPU's Vulkan driver behind it (a VM's, say): Mesa's
+        # lavapipe is a Vulkan device too, but a software one, slower than Taichi's CPU path
         order = ["cpu"]
-    elif backend == "auto" and not _nvidia_present() and not vulkan_starts():
-        order = ["cpu"]       # a render node with no GPU's Vulkan driver behind it (a VM's, say)
     # By default the cores this process may use: a Dask worker's share (workers.PinToShare), a
     # SLURM allocation, a taskset. A thread count in the job file wins.
     n_threads = threads or len(allowed_cpus())

@@ -165,12 +165,13 @@ class SPHSolver:
         scan, scatter, gather) and list the pairs within h + skin there; `from_position`: the
         reference positions are the current ones first. Fused, all in one launch."""
         if self.fused:
+            sums = self._block_sums()
             k_rebuild(self.position, self.ref, self.velocity, self.acceleration, self.fluid, self.id,
                       self.position_b, self.ref_b, self.velocity_b, self.acceleration_b, self.fluid_b, self.id_b,
-                      self.cell, self.count, self.fill, self.start, self.order, *self._block_sums(),
+                      self.cell, self.count, self.fill, self.start, self.order, *sums,
                       self.verlet, self.verlet_count, self.nb_cap, self.lay, self.h + self.skin, self.origin,
                       self.inv_cell, self.dims, self.ctl, clock.OVERFLOW, self.n_cells,
-                      *(a.shape[0] for a in self._block_sums()), from_position)
+                      *(a.shape[0] for a in sums), from_position)
             self._swap_sorted()
         else:
             if from_position:

@@ -4,7 +4,6 @@ lent GPU machine), Vulkan wherever Taichi can start a Vulkan device, Mesa's soft
 code generator, as on an AMD or Intel GPU, so this machine checks that path without a GPU."""
 from __future__ import annotations
 
-import glob
 from pathlib import Path
 
 import numpy as np
@@ -12,12 +11,12 @@ import pytest
 
 from conftest import tiny_spec
 from pipeline.spec import ShotSpec
-from solver.backend import vulkan_starts
+from solver.backend import nvidia_present, vulkan_starts
 
 pytestmark = [pytest.mark.gpu]
 
 
-NVIDIA = bool(glob.glob("/dev/nvidia[0-9]*"))
+NVIDIA = nvidia_present()
 ONLY_CUDA = pytest.mark.skipif(not NVIDIA, reason="no NVIDIA GPU on this machine")
 ONLY_VULKAN = pytest.mark.skipif(not vulkan_starts(software=True), reason="no Vulkan device here")
 DEVICES = [pytest.param("cuda", marks=ONLY_CUDA), pytest.param("vulkan", marks=ONLY_VULKAN)]
@@ -153,7 +152,7 @@ def test_auto_leaves_the_software_vulkan_device_to_an_explicit_ask(monkeypatch):
     """With a render node (as in a VM) but no GPU's Vulkan driver, "auto" must not land on
     Mesa's software device, several times slower than Taichi's CPU backend; "vulkan" may."""
     from solver import backend
-    monkeypatch.setattr(backend, "_gpu_device_present", lambda: True)
+    monkeypatch.setattr(backend, "_render_node_present", lambda: True)
     assert backend.init_taichi("auto", 1) == "cpu"
     assert backend.init_taichi("vulkan", 0) == "vulkan"
 
