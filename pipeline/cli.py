@@ -15,7 +15,7 @@ from .stages import STAGES
 EPILOG = f"""\
 exit codes:
   {errors.EXIT_OK}  every requested frame is valid on disk
-  {errors.EXIT_FAILURE}  runtime failure (unstable solver, failed frame, I/O error)
+  {errors.EXIT_FAILURE}  runtime failure (unstable solver, failed frame, a device failing, I/O error)
   {errors.EXIT_USAGE}  bad job file, --set, frame range or arguments, or a shot estimated to need more memory
      or disk than there is (see validate); nothing was written
   {errors.EXIT_STALE}  cached frames were made with other parameters (use --force or a new shot.version)

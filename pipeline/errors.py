@@ -7,7 +7,7 @@ from __future__ import annotations
 
 # Exit codes, documented in `sphshot --help` and the README.
 EXIT_OK = 0            # every requested frame is valid on disk
-EXIT_FAILURE = 1       # runtime failure (solver unstable, a frame failed, I/O error)
+EXIT_FAILURE = 1       # runtime failure (solver unstable, a frame failed, a device failed, I/O error)
 EXIT_USAGE = 2         # bad job file, bad --set, bad frame range, missing input file
 EXIT_STALE = 3         # cached frames were made with other parameters; use --force or a new version
 EXIT_WAITING = 4       # an upstream frame (sim frame N) is not there yet, or another worker holds

@@ -7,6 +7,7 @@ import glob
 import io
 import logging
 import os
+import re
 import subprocess
 import sys
 
@@ -78,6 +79,26 @@ def current_arch() -> str:
     import taichi as ti
     arch = ti.lang.impl.current_cfg().arch
     return "cpu" if arch in (ti.x64, ti.arm64) else arch.name
+
+
+# Taichi's runtime reports a failure as RuntimeError("[file.cpp:function@line] what"): a device
+# out of memory, a GPU lost or reset, a driver's error, a host allocation refused.
+_RUNTIME_ERROR = re.compile(r"^\[[\w.]+:[^\]]*@\d+\]\s*")
+
+
+def device_failure(exc: BaseException) -> str | None:
+    """What the device said, on one line, where `exc` is a failure of Taichi's runtime rather
+    than of the algorithm (the solver's own errors are SolverErrors) or of the calling code;
+    else None."""
+    import taichi as ti
+
+    if isinstance(exc, SolverError) or not isinstance(exc, RuntimeError):
+        return None
+    text = str(exc)
+    if not (isinstance(exc, ti.lang.exception.TaichiRuntimeError) or _RUNTIME_ERROR.match(text)):
+        return None
+    what = " ".join(_RUNTIME_ERROR.sub("", text).split()) or type(exc).__name__
+    return what if len(what) <= 300 else what[:300] + "..."
 
 
 def init_taichi(backend: str = "auto", threads: int = 0) -> str:

@@ -209,6 +209,85 @@ def test_corrupt_state_stops_naming_frame_and_keeps_earlier_frames(job_copy, mon
     assert not paths.sim_frame(2).exists()
 
 
+# What Taichi's runtime raises when the device fails (its logger's "[file:function@line] what",
+# as RuntimeError): out of device memory mid-shot here, the message CUDA's driver gives.
+DEVICE_ERROR = ("[cuda_driver.h:operator()@92] CUDA Error CUDA_ERROR_OUT_OF_MEMORY: out of memory while "
+                "calling mem_alloc (cuMemAlloc_v2)")
+
+
+def test_a_device_failure_mid_shot_is_one_line_and_the_run_resumes(job_copy, monkeypatch, capsys, caplog):
+    """A GPU that runs out of memory, is reset or loses its driver mid-shot fails inside a Taichi
+    call with a RuntimeError. The sim stage must say so in one line naming the frame and the
+    device, keep the frames before it, and a second run resume from the last checkpoint. The
+    failure is injected into the third frame's step (no device fails on request)."""
+    from pipeline import cli
+    from solver.sph import SPHSolver
+
+    job, args = job_copy(), small("shot.checkpoint_every=1")
+    real, calls = SPHSolver.advance_to, []
+
+    def advance_to(self, t, should_stop=None):
+        calls.append(t)
+        if len(calls) == 2:                   # frame 3: frame 1 is the fill, frame 2 the first call
+            raise RuntimeError(DEVICE_ERROR)
+        return real(self, t, should_stop)
+
+    monkeypatch.setattr(SPHSolver, "advance_to", advance_to)
+    code = cli.main(["run", str(job), *args, "--stage", "sim"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("sphshot: error:")]
+    assert code == 1 and "Traceback" not in err, err
+    assert lines == ["sphshot: error: frame 0003: sim: the cpu device failed: CUDA Error CUDA_ERROR_OUT_OF_MEMORY: "
+                     "out of memory while calling mem_alloc (cuMemAlloc_v2); the frames before it are kept: run "
+                     'again to resume from the last checkpoint, or run on another device (sim.backend = "cpu")'], err
+    spec = spec_of(job, args)
+    paths = cache.ShotPaths.for_spec(spec)
+    assert cache.scan(spec, paths, "sim", spec.frames).valid == (1, 2)
+
+    monkeypatch.setattr(SPHSolver, "advance_to", real)
+    caplog.clear()
+    with caplog.at_level("INFO", logger="sphshot"):
+        assert cli.main(["run", str(job), *args, "--stage", "sim"]) == 0
+    assert "sim: resuming from checkpoint at frame 2" in caplog.text
+    assert cache.scan(spec, paths, "sim", spec.frames).valid == tuple(spec.frames)
+
+
+def test_a_device_failure_while_surfacing_is_one_line_and_anything_else_a_traceback(job_copy, monkeypatch, capsys):
+    """The surfacer runs on the device too: its failure is one line naming the frame, and the
+    frames before it stay published. A RuntimeError that is not the device's (a bug) is not
+    dressed up as one: it reaches the caller whole, traceback and all."""
+    from pipeline import cli
+    from pipeline.stages import surface
+
+    job, args = job_copy(), small()
+    assert cli.main(["run", str(job), *args, "--stage", "sim"]) == 0
+    real, calls = surface.surface_frame, []
+
+    def failing(message):
+        def surface_frame(spec, data, attrs, frame):
+            calls.append(frame)
+            if len(calls) == 2:
+                raise RuntimeError(message)
+            return real(spec, data, attrs, frame)
+        return surface_frame
+
+    monkeypatch.setattr(surface, "surface_frame", failing(DEVICE_ERROR))
+    capsys.readouterr()
+    code = cli.main(["run", str(job), *args, "--stage", "surface"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("sphshot: error:")]
+    assert code == 1 and "Traceback" not in err, err
+    assert len(lines) == 1 and lines[0].startswith(
+        f"sphshot: error: frame {calls[1]:04d}: surfacing: the cpu device failed: CUDA Error CUDA_ERROR_OUT_OF_MEMORY"), err
+    spec = spec_of(job, args)
+    assert cache.scan(spec, cache.ShotPaths.for_spec(spec), "surface", spec.frames).valid == (calls[0],)
+
+    calls.clear()
+    monkeypatch.setattr(surface, "surface_frame", failing("dictionary changed size during iteration"))
+    with pytest.raises(RuntimeError, match="dictionary changed size"):
+        cli.main(["run", str(job), *args, "--stage", "surface"])
+
+
 def test_too_many_particles_for_the_neighbour_lists_is_one_error_line(job_copy, monkeypatch, capsys):
     """Past 2^31 list entries (about 22M particles at the default smoothing radius) the solver
     cannot index its neighbour lists; the limit is lowered here so a small shot reaches it."""

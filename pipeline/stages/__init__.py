@@ -13,9 +13,15 @@ Stage modules are imported lazily, so that `sphshot validate` and `status` stay 
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
+import logging
 from dataclasses import dataclass
 from typing import Any, Callable
+
+from ..errors import StageError
+
+log = logging.getLogger("sphshot")
 
 
 @dataclass(frozen=True)
@@ -44,6 +50,34 @@ class Stage:
     def finalize(self) -> Callable | None:
         """Optional step after every frame of the shot is valid (movie, contact sheet)."""
         return getattr(self._mod(), "finalize", None)
+
+
+def device_failed(exc: BaseException, where: str, then: str) -> StageError | None:
+    """A failure of the compute device (out of device memory, a GPU lost or reset, a driver's
+    error: solver.backend.device_failure) as one StageError line naming `where`, the device and
+    what it said, then `then`; the traceback goes to the debug log (SPHSHOT_LOG=DEBUG). None for
+    any other exception."""
+    if not isinstance(exc, RuntimeError):
+        return None
+    from solver.backend import current_arch, device_failure
+
+    what = device_failure(exc)
+    if what is None:
+        return None
+    log.debug("%s: the device's error", where, exc_info=exc)
+    return StageError(f"{where}: the {current_arch()} device failed: {what}; {then}")
+
+
+@contextlib.contextmanager
+def device_failures(where: str, then: str):
+    """device_failed() for the block: a device's failure raised as its StageError."""
+    try:
+        yield
+    except RuntimeError as exc:
+        failure = device_failed(exc, where, then)
+        if failure is None:
+            raise
+        raise failure from exc
 
 
 def _sim_sections(spec) -> dict[str, Any]:

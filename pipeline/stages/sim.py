@@ -22,10 +22,12 @@ from solver.params import Block, Collider, Fluid, SolverParams
 from ..cache import check_file, stage_hashes, stamp
 from ..errors import Interrupted, StageError
 from ..formats import read_h5, write_frame, write_h5
+from . import device_failed, device_failures
 
 log = logging.getLogger("sphshot")
 _STOP = {"signal": None}
 FEWER = "use fewer particles (a larger sim.particle_radius or smaller fluid blocks)"
+OTHER_DEVICE = 'or run on another device (sim.backend = "cpu")'
 
 
 def _request_stop(signum, _frame):
@@ -271,7 +273,8 @@ def run(spec, frames, paths, progress) -> None:
     last = todo[-1]
     stage_hash = stage_hashes(spec)["sim"]
     try:
-        params, solver, ckpt_frame = build_solver(spec, paths, todo[0])
+        with device_failures("sim: setting up", f"use fewer particles, {OTHER_DEVICE}"):
+            params, solver, ckpt_frame = build_solver(spec, paths, todo[0])
     except TooLarge as exc:
         raise StageError(f"sim: {exc}; {FEWER}") from exc
     except NoParticles as exc:
@@ -318,8 +321,12 @@ def run(spec, frames, paths, progress) -> None:
                               done=lambda path, f=frame: progress.frame_done(f, [path]))
             if (frame - spec.shot.frame_start) % spec.shot.checkpoint_every == 0 or frame == last:
                 write_checkpoint(paths, frame, solver, stage_hash, writer)
-    except BaseException:
+    except BaseException as exc:
         writer.close(quiet=True)       # the frames before the error still reach the disk
+        failure = device_failed(exc, f"frame {frame:04d}: sim", "the frames before it are kept: run again "
+                                f"to resume from the last checkpoint, {OTHER_DEVICE}")
+        if failure is not None:
+            raise failure from exc
         raise
     else:
         writer.close()

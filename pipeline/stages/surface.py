@@ -18,6 +18,7 @@ from surfacing.reconstruct import SurfaceParams, particle_volumes, reconstruct
 
 from ..errors import StageError
 from ..formats import read_frame, vdb_points_tool, write_mesh, write_points, write_vdb, write_vdb_points
+from . import device_failures
 
 log = logging.getLogger("sphshot")
 
@@ -92,7 +93,9 @@ def _write_frame(spec, frame: int, paths) -> list:
     except OSError as exc:
         raise StageError(f"frame {frame:04d}: surfacing: cannot read {src}: {exc}") from exc
     try:
-        field, mesh, per_fluid, spray = surface_frame(spec, data, attrs, frame)
+        with device_failures(f"frame {frame:04d}: surfacing", 'the frames done are kept: run again for the '
+                             'rest, or run on another device (sim.backend = "cpu")'):
+            field, mesh, per_fluid, spray = surface_frame(spec, data, attrs, frame)
     except SurfacingError as exc:
         raise StageError(f"frame {frame:04d}: surfacing: {exc}") from exc
     written = []
