@@ -5,10 +5,11 @@ horizontal plane", Phil. Trans. R. Soc. A 244, 312-324, the n^2 = 2, a = 2.25 in
 surge front Z = z / a against T = t sqrt(2 g / a) (their Fig. 3, as digitised in PySPH's
 pysph/examples/db_exp_data.py) and the residual column's height at the back wall H / (n^2 a)
 against tau = t sqrt(g / a) (their Table 6). The column is a wide and 2a high in a slice of a
-frictionless tank, inviscid, as tests/test_dfsph.py sets it up (which checks the first eight
-front points to 20 % and the column down to H = 0.56 to 3 %). Besides the two comparisons it
-prints the release time the column's height implies (the shift of the experiment's clock that
-fits the column best, with its spread) and the shift each front point would need.
+frictionless tank, inviscid, set up and measured as tests/test_dfsph.py does (tests/experiments.py
+holds the data, the set-up and the measures; the tests check the first eight front points to 20 %
+and the column down to H = 0.56 to 3 %). Besides the two comparisons it prints the release time
+the column's height implies (the shift of the experiment's clock that fits the column best, with
+its spread) and the shift each front point would need.
 
 --stokes-floor F probes one explanation of the front's lead: each step, the particles touching
 the floor (within 1.5 r) lose velocity to the floor's laminar boundary layer, which the
@@ -30,29 +31,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
 
-G = 9.81
-# Fig. 3, n^2 = 2, a = 2.25 in: (T, Z)
-FRONT = np.array([(0.832, 1.217), (1.219, 1.474), (1.997, 2.292), (2.547, 2.995), (3.345, 4.134),
-                  (4.034, 4.944), (4.418, 5.881), (5.091, 6.980), (5.685, 7.945), (6.306, 8.966),
-                  (6.822, 9.986), (7.439, 10.963), (8.031, 11.977), (8.633, 13.005), (9.237, 13.970)])
-# Table 6, n^2 = 2, a = 2.25 in: (tau, H)
-COLUMN = np.array([(0.56, 0.94), (0.77, 0.89), (0.93, 0.83), (1.08, 0.78), (1.28, 0.72), (1.46, 0.67),
-                   (1.66, 0.61), (1.84, 0.56), (2.00, 0.50), (2.21, 0.44), (2.45, 0.39), (2.70, 0.33),
-                   (3.06, 0.28), (3.44, 0.22), (4.20, 0.17), (5.25, 0.11)])
-
-
-def column_solver(a: float, r: float, tank: float, depth: float):
-    """The pipeline's DFSPH solver for the column a x 2a x depth in a frictionless tank."""
-    from pipeline.spec import ShotSpec
-    from pipeline.stages.sim import initial_state, make_solver, solver_params
-
-    spec = ShotSpec.model_validate({
-        "shot": {"name": "martin_moyce"}, "sim": {"particle_radius": r},
-        "domain": {"min": (0, 0, 0), "max": (tank, 2.5 * a, depth), "friction": 0.0},
-        "fluids": ({"name": "water", "viscosity": 0.0, "blocks": ({"min": (0, 0, 0), "max": (a, 2 * a, depth)},)},)})
-    params = solver_params(spec)
-    return make_solver(spec, params, initial_state(spec, params))
+import experiments as mm  # noqa: E402 - the data, the set-up and the measures the tests use
 
 
 class StokesFloor:
@@ -91,15 +72,15 @@ def main() -> None:
     from solver.backend import init_taichi
     init_taichi("cpu", args.threads)
     a, r = args.a, args.radius
-    s = column_solver(a, r, args.tank, args.depth)
+    _params, s = mm.collapsing_column(args.tank, a, r, args.depth)
     floor = StokesFloor(1e-6 * args.stokes_floor, r, args.tank) if args.stokes_floor > 0 else None
     print(f"Martin & Moyce, n^2 = 2: a = {a} m, r = {r} m, {s.n} particles, tank {args.tank} m, "
           f"slice {args.depth} m, floor boundary layer x{args.stokes_floor:g}")
 
-    front_scale, column_scale = np.sqrt(2 * G / a), np.sqrt(G / a)
+    front_scale, column_scale = np.sqrt(2 * mm.G / a), np.sqrt(mm.G / a)
     reach = (args.tank - 4 * r) / a                       # the front points the tank holds
-    samples = sorted([(T / front_scale, "front", T, Z) for T, Z in FRONT if Z < reach] +
-                     [(tau / column_scale, "column", tau, H) for tau, H in COLUMN])
+    samples = sorted([(mm.front_time(T, a), "front", T, Z) for T, Z in mm.FRONT if Z < reach] +
+                     [(mm.column_time(tau, a), "column", tau, H) for tau, H in mm.COLUMN])
     rows = {"front": [], "column": []}
     for t_at, kind, x_exp, y_exp in samples:
         while s.time < t_at - 1e-9:
@@ -107,10 +88,7 @@ def main() -> None:
             if floor:
                 floor(s, s.time, dt)
         p = s.position.to_numpy()
-        if kind == "front":
-            y_sim = (np.sort(p[:, 0])[-3] + r) / a            # the leading edge, two stray particles ignored
-        else:
-            y_sim = (np.sort(p[p[:, 0] < 2 * r, 1])[-2] + r) / (2 * a)
+        y_sim = mm.front(p, a, r) if kind == "front" else mm.column_height(p, a, r)
         rows[kind].append((x_exp, y_exp, y_sim))
         print(f"  {kind:6s} {'T' if kind == 'front' else 'tau'} = {x_exp:.3f}: experiment {y_exp:.3f}, "
               f"sphshot {y_sim:.3f} ({100 * (y_sim / y_exp - 1):+.1f} %)", flush=True)

@@ -4,6 +4,7 @@ import math
 import numpy as np
 import pytest
 
+import experiments as mm
 from conftest import tiny_spec
 from pipeline.spec import ShotSpec
 from solver import kernels as K
@@ -318,20 +319,7 @@ def test_a_water_blob_sinks_through_oil():
 
 
 # -------------------------------------------------------------------------------- experiment
-# Martin & Moyce 1952, "An experimental study of the collapse of liquid columns on a rigid
-# horizontal plane", Phil. Trans. R. Soc. A 244, Fig. 3, n^2 = 2, a = 2.25 in: surge front
-# Z = z/a against T = t sqrt(2 g / a), as digitised in PySPH (pysph/examples/db_exp_data.py).
-MARTIN_MOYCE = np.array([(0.832, 1.217), (1.219, 1.474), (1.997, 2.292), (2.547, 2.995),
-                         (3.345, 4.134), (4.034, 4.944), (4.418, 5.881), (5.091, 6.980)])
-
-
-def collapsing_column(tank_length: float, a: float = 0.1, r: float = 0.005):
-    """(params, solver) for Martin & Moyce's column, a wide and 2a high (n^2 = 2), 10 particles
-    across, inviscid, in a 5 cm deep slice of a tank `tank_length` long with frictionless walls."""
-    _spec, params, s = dfsph({**tiny_spec(((0, 0, 0), (a, 2 * a, 0.05)), sim={"particle_radius": r},
-                                           fluid={"viscosity": 0.0}),
-                               "domain": {"min": (0, 0, 0), "max": (tank_length, 0.25, 0.05), "friction": 0.0}})
-    return params, s
+# Martin & Moyce 1952's collapsing column (tests/experiments.py: the data, the set-up, the measures)
 
 
 def test_surge_front_follows_martin_and_moyce():
@@ -344,19 +332,11 @@ def test_surge_front_follows_martin_and_moyce():
     held, and later the front runs at Ritter's ideal speed where the experiment's runs 15 %
     below it on its dry floor (bench/martin_moyce.py; bench/RESULTS.md, thirty-first session)."""
     a, r = 0.1, 0.005
-    _params, s = collapsing_column(0.8, a, r)
-    scale = np.sqrt(2 * 9.81 / a)
-    for T, Z in MARTIN_MOYCE:
-        s.advance_to(T / scale)
-        x = np.sort(s.position.to_numpy()[:, 0])
-        front = (x[-3] + r) / a           # the leading edge, ignoring two stray particles
+    _params, s = mm.collapsing_column(0.8, a, r)
+    for T, Z in mm.FRONT[:8]:                   # to Z = 7 (the 0.8 m tank)
+        s.advance_to(mm.front_time(T, a))
+        front = mm.front(s.position.to_numpy(), a, r)
         assert -0.02 < front / Z - 1 < 0.20, f"T = {T}: front at Z = {front:.2f}, experiment {Z}"
-
-
-# Martin & Moyce 1952, Table 6 (n^2 = 2, a = 2.25 in): the residual column's height at the back
-# wall H / (n^2 a) against tau = t sqrt(g / a), down to H = 0.56 (the rest of the table: bench/RESULTS.md)
-MARTIN_MOYCE_COLUMN = np.array([(0.56, 0.94), (0.77, 0.89), (0.93, 0.83), (1.08, 0.78), (1.28, 0.72),
-                                (1.46, 0.67), (1.66, 0.61), (1.84, 0.56)])
 
 
 def test_the_collapsing_column_falls_as_martin_and_moyces():
@@ -368,13 +348,10 @@ def test_the_collapsing_column_falls_as_martin_and_moyces():
     Later the column drains too slowly (+6 % at H = 0.50, +23 % at 0.22; bench/RESULTS.md,
     thirtieth session), and that is not asserted."""
     a, r = 0.1, 0.005
-    _params, s = collapsing_column(0.8, a, r)
-    scale = np.sqrt(9.81 / a)
-    for tau, H in MARTIN_MOYCE_COLUMN:
-        s.advance_to(tau / scale)
-        p = s.position.to_numpy()
-        wall = np.sort(p[p[:, 0] < 2 * r, 1])
-        height = (wall[-2] + r) / (2 * a)
+    _params, s = mm.collapsing_column(0.8, a, r)
+    for tau, H in mm.COLUMN[mm.COLUMN[:, 1] >= 0.56]:
+        s.advance_to(mm.column_time(tau, a))
+        height = mm.column_height(s.position.to_numpy(), a, r)
         assert abs(height / H - 1) < 0.03, f"tau = {tau}: column at H = {height:.3f}, experiment {H}"
 
 
@@ -389,8 +366,8 @@ def test_the_sheet_behind_the_surge_front_keeps_its_thickness():
     overshot: the sheet stood 1.89 times its water's depth at 0.76 of rest, and boiled.
     Bounds: 1.4 and 0.9."""
     a, r = 0.1, 0.005
-    params, s = collapsing_column(1.6, a, r)
-    s.advance_to(5.25 / np.sqrt(9.81 / a))
+    params, s = mm.collapsing_column(1.6, a, r)
+    s.advance_to(mm.column_time(5.25, a))
     p = s.position.to_numpy()
     near_wall = p[:, 0] < 0.2
     depth = near_wall.sum() * (2 * r) ** 3 / (0.2 * 0.05)
