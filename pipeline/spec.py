@@ -148,23 +148,48 @@ class Sim(Strict):
         return given or wcsph_default
 
 
+NoSlipWall = Literal["-x", "+x", "-y", "+y", "-z", "+z", "colliders"]
+NO_SLIP_ALL: tuple[str, ...] = NoSlipWall.__args__
+
+
 class Domain(Strict):
     min: Vec3 = (0.0, 0.0, 0.0)
     max: Vec3 = (1.0, 1.0, 1.0)
     restitution: Unit = 0.0
     friction: Unit = 0.1
-    # dfsph: walls and colliders hold a fluid's dynamic viscosity by no slip (honey clings);
-    # false: free-slip walls (viscosity acts between particles only)
-    no_slip: bool = True
+    # dfsph: the walls and colliders that hold a fluid's dynamic viscosity by no slip (honey
+    # clings): true all, false none (free slip: viscosity acts between particles only), or a
+    # list of the box's faces and "colliders" (a slice of a wide channel: its sides free)
+    no_slip: bool | tuple[NoSlipWall, ...] = True
     # faces with no wall: particles that leave through one are removed (and counted in the log)
     open: tuple[Literal["-x", "+x", "-y", "+y", "-z", "+z"], ...] = ()
+
+    @field_validator("no_slip", mode="before")
+    @classmethod
+    def _walls(cls, value):
+        """One line for a bad value (pydantic would report each branch of the union)."""
+        names = ", ".join(f'"{w}"' for w in NO_SLIP_ALL)
+        if isinstance(value, bool):
+            return value
+        if not isinstance(value, (tuple, list)) or not all(isinstance(w, str) and w in NO_SLIP_ALL for w in value):
+            raise ValueError(f"expected true, false or a list of {names}, got {value!r}")
+        return tuple(value)
 
     @model_validator(mode="after")
     def _extent(self):
         _check_extent(self.min, self.max)
         if len(set(self.open)) != len(self.open):
             raise ValueError(f"open: each face at most once, got {list(self.open)}")
+        if not isinstance(self.no_slip, bool) and len(set(self.no_slip)) != len(self.no_slip):
+            raise ValueError(f"no_slip: each face at most once, got {list(self.no_slip)}")
         return self
+
+    @property
+    def no_slip_walls(self) -> tuple[str, ...]:
+        """The faces (and "colliders") that hold the fluid: no_slip as a list."""
+        if isinstance(self.no_slip, bool):
+            return NO_SLIP_ALL if self.no_slip else ()
+        return tuple(self.no_slip)
 
 
 class Block(Strict):

@@ -246,16 +246,17 @@ def boundary_sums(xi, c: ti.template(), box: ti.template(), ghost_t: ti.template
 def wall_viscosity(xi, c: ti.template(), box: ti.template(), table: ti.template(), ctype: ti.template(),
                    cprm: ti.template(), sdf: ti.template()) -> ti.f32:
     """The viscous weight S of the walls and colliders near x_i (kernels.wall_viscosity_table),
-    each as a plane at its distance; edges and corners count each of their walls."""
+    each as a plane at its distance; edges and corners count each of their walls. `table`'s
+    rows: the faces -x, +x, -y, +y, -z, +z, then the colliders (zeros where one is free-slip)."""
     a, s = nearest_walls(xi, box.lo, box.hi, c.h)
     out = 0.0
     for ax in ti.static(range(3)):
-        if s[ax] != 0.0:
-            out += table_row(table, 0, a[ax], c.h)
+        if s[ax] != 0.0:     # s = +1: the low wall, face "-x" (row 2 ax); -1: the high one
+            out += table_row(table, 2 * ax + ti.select(s[ax] < 0.0, 1, 0), a[ax], c.h)
     for k in range(ctype.shape[0]):
         phi, _n = collider_sdf(ctype[k], cprm, sdf, k, xi)
         if phi < c.h:
-            out += table_row(table, 0, ti.max(phi, 0.0), c.h)
+            out += table_row(table, 6, ti.max(phi, 0.0), c.h)
     return out
 
 

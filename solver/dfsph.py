@@ -47,7 +47,7 @@ from . import kernels as K
 from .boundaries import boundary_sums, mirror_walls, reflect, reflect_velocity, wall_viscosity
 from .errors import Unstable
 from .neighbours import k_gather_f1
-from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, SolverParams
+from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, NO_SLIP_ROWS, SolverParams
 from .sph import NOT_FINITE, SPHSolver, explicit_viscous_limit
 from .sums import Summer, chunk_sums_pass, sweep_open, total_pass
 from .types import D1, F1, F2, F4, I1, IV2, P_H, V3, T, box_of, consts_of, ivec2, raise_max, vec3
@@ -601,9 +601,10 @@ class DFSPHSolver(SPHSolver):
                                  if np.any(table[:, col] != 0))
         self.viscous = ti.Vector.ndarray(3, ti.f32, shape=n)
         self.wall_visc = ti.ndarray(ti.f32, n)
-        self.visc_t = ti.ndarray(ti.f32, (1, 25))
+        # rows: the faces -x, +x, -y, +y, -z, +z, then the colliders; a free-slip one's is zeros
         wall = K.wall_viscosity_table(params.pressure_kind, self.h, params.particle_radius)
-        self.visc_t.from_numpy(wall if params.no_slip else np.zeros_like(wall))    # free slip: no pull
+        self.visc_t = ti.ndarray(ti.f32, (7, wall.shape[1]))
+        self.visc_t.from_numpy(np.concatenate([wall * (w in params.no_slip) for w in NO_SLIP_ROWS]))
         self.implicit = None        # the CG's arrays, made on the first step past dt_eta
         for name in self.EXTRA:
             a, b = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)

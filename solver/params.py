@@ -55,6 +55,10 @@ class Collider:
     sdf: SDFGrid | None = None
 
 
+# The walls that can hold a fluid's dynamic viscosity (no slip): the box's faces and the colliders
+NO_SLIP_ROWS = ("-x", "+x", "-y", "+y", "-z", "+z", "colliders")
+
+
 @dataclass(frozen=True)
 class SolverParams:
     """Everything a solver needs. Every length is in metres."""
@@ -68,7 +72,7 @@ class SolverParams:
     open_faces: tuple[str, ...] = ()            # "-x" ... "+z": faces with no wall
     domain_restitution: float = 0.0
     domain_friction: float = 0.1
-    no_slip: bool = True                        # walls hold the dynamic viscosity (DFSPH)
+    no_slip: tuple[str, ...] = NO_SLIP_ROWS     # the walls that hold the dynamic viscosity (DFSPH)
     colliders: tuple[Collider, ...] = ()
     gamma: float = 7.0
     cfl: float = 0.4

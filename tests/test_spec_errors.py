@@ -45,6 +45,10 @@ CORPUS = [
      "block z range [0.0, 0.9] lies outside the domain"),
     ("inverted-domain", GOOD.replace("max = [1.0, 0.6, 0.4]", "max = [1.0, -0.6, 0.4]"), [],
      "domain: max.y must be > min.y"),
+    ("no-slip-unknown-wall", GOOD.replace("max = [1.0, 0.6, 0.4]", 'max = [1.0, 0.6, 0.4]\nno_slip = ["-y", "floor"]'),
+     [], 'domain.no_slip: expected true, false or a list of "-x", "+x", "-y", "+y", "-z", "+z", "colliders", '
+         "got ('-y', 'floor')"),
+    ("no-slip-not-a-list", GOOD, ["--set", 'domain.no_slip="yes"'], "domain.no_slip: expected true, false or a list"),
     ("vector-too-short", GOOD.replace("min = [0.0, 0.0, 0.0]\nmax = [1.0", "min = [0.0, 0.0]\nmax = [1.0", 1), [],
      "domain.min[2]: required key is missing"),
     ("missing-fluids", GOOD.split("[[fluids]]")[0], [], "fluids: required key is missing"),

@@ -60,7 +60,7 @@ def solver_params(spec) -> SolverParams:
         gravity=tuple(sim.gravity), domain_min=tuple(spec.domain.min), domain_max=tuple(spec.domain.max),
         open_faces=tuple(spec.domain.open),
         domain_restitution=spec.domain.restitution, domain_friction=spec.domain.friction,
-        no_slip=spec.domain.no_slip,
+        no_slip=spec.domain.no_slip_walls,
         colliders=tuple(colliders), gamma=sim.gamma, cfl=sim.cfl, max_dt=sim.max_dt,
         surface_threshold=sim.surface_threshold, surface_tension_model=sim.surface_tension_model,
         density_kernel=sim.density_kernel,
