@@ -17,9 +17,14 @@ particles cannot resolve: Stokes' first problem, wall shear mu u / sqrt(pi nu t)
 since the floor under the particle was first wet (at least a particle's crossing time), nu
 F times water's. A probe, not a model the solver has.
 
+--water runs the experiment as it was instead of its Froude-scaled, inviscid twin: the
+column 2.25 in wide, water's viscosity and surface tension, no slip at the tank's floor and
+ends, the slice's sides free (planes of symmetry of a wide channel, domain.no_slip as a list).
+
   .venv/bin/python bench/martin_moyce.py                      # r = 5 mm, a 1.6 m tank, to T = 9.2
   .venv/bin/python bench/martin_moyce.py --radius 0.0025 --depth 0.02
   .venv/bin/python bench/martin_moyce.py --tank 0.8 --stokes-floor 1
+  .venv/bin/python bench/martin_moyce.py --water --tank 0.92 --radius 0.000714 --depth 0.0071   # a / 80
 
 Not a test: figures and what they showed are in bench/RESULTS.md (thirty-first session).
 """
@@ -61,6 +66,9 @@ class StokesFloor:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--a", type=float, default=0.1, help="column width, m (default 0.1; height 2a)")
+    ap.add_argument("--water", action="store_true",
+                    help="the experiment as it was: a = 2.25 in (over --a), water's viscosity and surface "
+                         "tension (Mueller's), the tank's floor and ends holding it, the slice's sides free")
     ap.add_argument("--radius", type=float, default=0.005, help="particle radius, m (default 0.005)")
     ap.add_argument("--tank", type=float, default=1.6, help="tank length, m (default 1.6)")
     ap.add_argument("--depth", type=float, default=0.05, help="the slice's depth, m (default 0.05)")
@@ -71,11 +79,13 @@ def main() -> None:
 
     from solver.backend import init_taichi
     init_taichi("cpu", args.threads)
-    a, r = args.a, args.radius
-    _params, s = mm.collapsing_column(args.tank, a, r, args.depth)
+    a, r = (mm.A_EXPERIMENT if args.water else args.a), args.radius
+    water = {"fluid": mm.WATER, "domain": {"no_slip": ("-x", "+x", "-y")}} if args.water else {}
+    _params, s = mm.collapsing_column(args.tank, a, r, args.depth, **water)
     floor = StokesFloor(1e-6 * args.stokes_floor, r, args.tank) if args.stokes_floor > 0 else None
     print(f"Martin & Moyce, n^2 = 2: a = {a} m, r = {r} m, {s.n} particles, tank {args.tank} m, "
-          f"slice {args.depth} m, floor boundary layer x{args.stokes_floor:g}")
+          f"slice {args.depth} m, {'water' if args.water else 'inviscid'}, "
+          f"floor boundary layer x{args.stokes_floor:g}")
 
     front_scale, column_scale = np.sqrt(2 * mm.G / a), np.sqrt(mm.G / a)
     reach = (args.tank - 4 * r) / a                       # the front points the tank holds

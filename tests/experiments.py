@@ -12,6 +12,9 @@ from __future__ import annotations
 import numpy as np
 
 G = 9.81
+A_EXPERIMENT = 2.25 * 0.0254                # m: the column's width a in the runs below
+# water as the experiment had it (about 20 C): Pa s and N/m
+WATER = {"dynamic_viscosity": 1.0e-3, "surface_tension": 0.0728}
 
 # Fig. 3: the surge front Z = z / a against T = t sqrt(2 g / a), as digitised in PySPH
 # (pysph/examples/db_exp_data.py).
@@ -35,17 +38,19 @@ def column_time(tau: float, a: float) -> float:
     return tau / np.sqrt(G / a)
 
 
-def collapsing_column(tank_length: float, a: float = 0.1, r: float = 0.005, depth: float = 0.05):
+def collapsing_column(tank_length: float, a: float = 0.1, r: float = 0.005, depth: float = 0.05, *,
+                      sim: dict | None = None, fluid: dict | None = None, domain: dict | None = None):
     """(params, solver) for the column, a wide and 2a high, inviscid, in a slice `depth` deep of
     a tank `tank_length` long and 2.5a high with frictionless walls: the pipeline's DFSPH solver,
-    started as the sim stage starts it."""
+    started as the sim stage starts it. `sim`, `fluid` and `domain` add job keys (a viscosity, a
+    surface tension, the walls that hold it)."""
     from pipeline.spec import ShotSpec
     from pipeline.stages.sim import initial_state, make_solver, solver_params
 
     spec = ShotSpec.model_validate({
-        "shot": {"name": "martin_moyce"}, "sim": {"particle_radius": r},
-        "domain": {"min": (0, 0, 0), "max": (tank_length, 2.5 * a, depth), "friction": 0.0},
-        "fluids": ({"name": "water", "viscosity": 0.0,
+        "shot": {"name": "martin_moyce"}, "sim": {"particle_radius": r, **(sim or {})},
+        "domain": {"min": (0, 0, 0), "max": (tank_length, 2.5 * a, depth), "friction": 0.0, **(domain or {})},
+        "fluids": ({"name": "water", **(fluid or {"viscosity": 0.0}),
                     "blocks": ({"min": (0, 0, 0), "max": (a, 2 * a, depth)},)},)})
     params = solver_params(spec)
     return params, make_solver(spec, params, initial_state(spec, params))
