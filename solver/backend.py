@@ -109,7 +109,10 @@ def init_taichi(backend: str = "auto", threads: int = 0) -> str:
     """
     global _current, _arch_name
     os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
-    os.environ.setdefault("TI_LOG_LEVEL", "error")
+    # Taichi's own log: nothing below critical. Its warnings are a developer's; its errors come
+    # back as exceptions too, which the callers turn into one line (device_failure). Set
+    # TI_LOG_LEVEL=error (or warn) to see them as Taichi prints them.
+    os.environ.setdefault("TI_LOG_LEVEL", "critical")
     import taichi as ti
 
     want = (backend, threads)
