@@ -180,8 +180,12 @@ class Domain(Strict):
         _check_extent(self.min, self.max)
         if len(set(self.open)) != len(self.open):
             raise ValueError(f"open: each face at most once, got {list(self.open)}")
-        if not isinstance(self.no_slip, bool) and len(set(self.no_slip)) != len(self.no_slip):
-            raise ValueError(f"no_slip: each face at most once, got {list(self.no_slip)}")
+        if not isinstance(self.no_slip, bool):
+            if len(set(self.no_slip)) != len(self.no_slip):
+                raise ValueError(f"no_slip: each face at most once, got {list(self.no_slip)}")
+            if set(self.no_slip) & set(self.open):
+                face = sorted(set(self.no_slip) & set(self.open))[0]
+                raise ValueError(f'no_slip: "{face}" is open (domain.open), there is no wall there to hold the fluid')
         return self
 
     @property

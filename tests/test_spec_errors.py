@@ -48,6 +48,8 @@ CORPUS = [
     ("no-slip-unknown-wall", GOOD.replace("max = [1.0, 0.6, 0.4]", 'max = [1.0, 0.6, 0.4]\nno_slip = ["-y", "floor"]'),
      [], 'domain.no_slip: expected true, false or a list of "-x", "+x", "-y", "+y", "-z", "+z", "colliders", '
          "got ('-y', 'floor')"),
+    ("no-slip-on-an-open-face", GOOD.replace("max = [1.0, 0.6, 0.4]", 'max = [1.0, 0.6, 0.4]\nopen = ["+y"]\nno_slip = ["-y", "+y"]'),
+     [], 'domain: no_slip: "+y" is open (domain.open), there is no wall there to hold the fluid'),
     ("no-slip-not-a-list", GOOD, ["--set", 'domain.no_slip="yes"'], "domain.no_slip: expected true, false or a list"),
     ("vector-too-short", GOOD.replace("min = [0.0, 0.0, 0.0]\nmax = [1.0", "min = [0.0, 0.0]\nmax = [1.0", 1), [],
      "domain.min[2]: required key is missing"),
