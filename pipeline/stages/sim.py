@@ -293,6 +293,7 @@ def run(spec, frames, paths, progress) -> None:
     _STOP["signal"] = None
     wall0, steps0 = time.perf_counter(), solver.steps
     writer = BackgroundWriter()
+    frame = start + 1                  # (named by an error raised before the loop's first frame)
     try:
         for frame in range(start + 1, last + 1):
             try:
