@@ -15,12 +15,14 @@ from .stages import STAGES
 EPILOG = f"""\
 exit codes:
   {errors.EXIT_OK}  every requested frame is valid on disk
-  {errors.EXIT_FAILURE}  runtime failure (unstable solver, failed frame, a device failing, I/O error)
+  {errors.EXIT_FAILURE}  runtime failure (unstable solver, failed frame, I/O error)
   {errors.EXIT_USAGE}  bad job file, --set, frame range or arguments, or a shot estimated to need more memory
      or disk than there is (see validate); nothing was written
   {errors.EXIT_STALE}  cached frames were made with other parameters (use --force or a new shot.version)
   {errors.EXIT_WAITING}  waiting on an upstream frame (sim frame N) or on another worker's sim; retry later
   {errors.EXIT_INTERRUPTED}  interrupted (SIGTERM/SIGUSR1/SIGINT) after a checkpoint; run again to resume
+  {errors.EXIT_DEVICE}  the compute device failed (GPU out of memory, reset, driver); the frames before it are
+     kept: retry, on another node or with sim.backend = "cpu"
 """
 
 STAGE_CHOICES = (*STAGES, *(f"{s}+" for s in list(STAGES)[1:-1]), "all")

@@ -7,12 +7,14 @@ from __future__ import annotations
 
 # Exit codes, documented in `sphshot --help` and the README.
 EXIT_OK = 0            # every requested frame is valid on disk
-EXIT_FAILURE = 1       # runtime failure (solver unstable, a frame failed, a device failed, I/O error)
+EXIT_FAILURE = 1       # runtime failure (solver unstable, a frame failed, I/O error)
 EXIT_USAGE = 2         # bad job file, bad --set, bad frame range, missing input file
 EXIT_STALE = 3         # cached frames were made with other parameters; use --force or a new version
 EXIT_WAITING = 4       # an upstream frame (sim frame N) is not there yet, or another worker holds
                        # the stage; a farm retries later
 EXIT_INTERRUPTED = 5   # stopped by SIGTERM/SIGUSR1/SIGINT after writing a checkpoint; run again to resume
+EXIT_DEVICE = 6        # the compute device failed (GPU out of memory, reset, driver): the frames before
+                       # it are kept; retry, on another node or with sim.backend = "cpu"
 
 
 class SphshotError(Exception):
@@ -59,3 +61,9 @@ class StageError(SphshotError):
 
 class Interrupted(SphshotError):
     exit_code = EXIT_INTERRUPTED
+
+
+class DeviceFailed(StageError):
+    """The compute device failed under a stage: not the shot's doing, so worth a retry (Dask
+    retries such a task on another worker)."""
+    exit_code = EXIT_DEVICE

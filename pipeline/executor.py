@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 from .cache import stage_hashes, stamp, stamp_path, stamped_digests
 from .claims import FrameClaims, read_owner, release, try_claim
-from .errors import Busy, Interrupted, SphshotError, StageError
+from .errors import Busy, DeviceFailed, Interrupted, SphshotError, StageError
 from .frames import format_frames
 from .progress import Collect, Progress
 from .stages import STAGES
@@ -109,13 +109,16 @@ class TaskResult:
 def frame_task(stage: str, spec, frames, paths, since, after: "TaskResult | None" = None) -> TaskResult:
     """A Dask task: run a stage over frames on the worker. Failures come back as results, not
     exceptions, so Dask does not retry a frame that would fail the same way again; exceptions
-    that escape (a lost worker, a crash) are retried by Dask."""
+    that escape (a lost worker, a crash, the worker's device failing: DeviceFailed) are retried
+    by Dask."""
     if after is not None and after.error is not None:
         return TaskResult(stage, tuple(frames),
                           error=f"not run: {after.stage} frame(s) {format_frames(after.frames)} failed")
     collect = Collect()
     try:
         run_here(stage, spec, frames, paths, collect, since)
+    except DeviceFailed:
+        raise                # the worker's device, not the frame: Dask retries it, on another worker
     except SphshotError as exc:
         return TaskResult(stage, tuple(frames), tuple(collect.frames), error=str(exc))
     return TaskResult(stage, tuple(frames), tuple(collect.frames))

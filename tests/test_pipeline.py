@@ -218,8 +218,9 @@ DEVICE_ERROR = ("[cuda_driver.h:operator()@92] CUDA Error CUDA_ERROR_OUT_OF_MEMO
 def test_a_device_failure_mid_shot_is_one_line_and_the_run_resumes(job_copy, monkeypatch, capsys, caplog):
     """A GPU that runs out of memory, is reset or loses its driver mid-shot fails inside a Taichi
     call with a RuntimeError. The sim stage must say so in one line naming the frame and the
-    device, keep the frames before it, and a second run resume from the last checkpoint. The
-    failure is injected into the third frame's step (no device fails on request)."""
+    device, exit 6 (not the shot's doing: worth a retry elsewhere), keep the frames before it,
+    and a second run resume from the last checkpoint. The failure is injected into the third
+    frame's step (no device fails on request)."""
     from pipeline import cli
     from solver.sph import SPHSolver
 
@@ -236,7 +237,7 @@ def test_a_device_failure_mid_shot_is_one_line_and_the_run_resumes(job_copy, mon
     code = cli.main(["run", str(job), *args, "--stage", "sim"])
     err = capsys.readouterr().err
     lines = [ln for ln in err.splitlines() if ln.startswith("sphshot: error:")]
-    assert code == 1 and "Traceback" not in err, err
+    assert code == 6 and "Traceback" not in err, err
     assert lines == ["sphshot: error: frame 0003: sim: the cpu device failed: CUDA Error CUDA_ERROR_OUT_OF_MEMORY: "
                      "out of memory while calling mem_alloc (cuMemAlloc_v2); the frames before it are kept: run "
                      'again to resume from the last checkpoint, or run on another device (sim.backend = "cpu")'], err
@@ -253,8 +254,8 @@ def test_a_device_failure_mid_shot_is_one_line_and_the_run_resumes(job_copy, mon
 
 
 def test_a_device_failure_while_surfacing_is_one_line_and_anything_else_a_traceback(job_copy, monkeypatch, capsys):
-    """The surfacer runs on the device too: its failure is one line naming the frame, and the
-    frames before it stay published. A RuntimeError that is not the device's (a bug) is not
+    """The surfacer runs on the device too: its failure is one line naming the frame, exit 6, and
+    the frames before it stay published. A RuntimeError that is not the device's (a bug) is not
     dressed up as one: it reaches the caller whole, traceback and all."""
     from pipeline import cli
     from pipeline.stages import surface
@@ -276,7 +277,7 @@ def test_a_device_failure_while_surfacing_is_one_line_and_anything_else_a_traceb
     code = cli.main(["run", str(job), *args, "--stage", "surface"])
     err = capsys.readouterr().err
     lines = [ln for ln in err.splitlines() if ln.startswith("sphshot: error:")]
-    assert code == 1 and "Traceback" not in err, err
+    assert code == 6 and "Traceback" not in err, err
     assert len(lines) == 1 and lines[0].startswith(
         f"sphshot: error: frame {calls[1]:04d}: surfacing: the cpu device failed: CUDA Error CUDA_ERROR_OUT_OF_MEMORY"), err
     spec = spec_of(job, args)
@@ -286,6 +287,27 @@ def test_a_device_failure_while_surfacing_is_one_line_and_anything_else_a_traceb
     monkeypatch.setattr(surface, "surface_frame", failing("dictionary changed size during iteration"))
     with pytest.raises(RuntimeError, match="dictionary changed size"):
         cli.main(["run", str(job), *args, "--stage", "surface"])
+
+
+def test_a_dask_task_whose_device_failed_is_raised_for_dask_to_retry(job_copy, monkeypatch):
+    """On a Dask worker a frame's failure comes back as the task's result (Dask must not run a
+    frame that fails the same way again), but a device's failure is the worker's, not the
+    frame's: frame_task raises it, so that Dask retries the task, on another worker."""
+    from pipeline import executor
+    from pipeline.errors import DeviceFailed, StageError
+
+    spec = spec_of(job_copy(), small())
+    paths = cache.ShotPaths.for_spec(spec)
+    for error, raised in ((DeviceFailed("frame 0002: surfacing: the cuda device failed: ..."), True),
+                          (StageError("frame 0002: surfacing: no particles"), False)):
+        def run_here(*_args, error=error):
+            raise error
+        monkeypatch.setattr(executor, "run_here", run_here)
+        if raised:
+            with pytest.raises(DeviceFailed):
+                executor.frame_task("surface", spec, [2], paths, None)
+        else:
+            assert executor.frame_task("surface", spec, [2], paths, None).error == str(error)
 
 
 def test_too_many_particles_for_the_neighbour_lists_is_one_error_line(job_copy, monkeypatch, capsys):

@@ -19,7 +19,7 @@ import logging
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from ..errors import StageError
+from ..errors import DeviceFailed
 
 log = logging.getLogger("sphshot")
 
@@ -52,9 +52,9 @@ class Stage:
         return getattr(self._mod(), "finalize", None)
 
 
-def device_failed(exc: BaseException, where: str, then: str) -> StageError | None:
+def device_failed(exc: BaseException, where: str, then: str) -> DeviceFailed | None:
     """A failure of the compute device (out of device memory, a GPU lost or reset, a driver's
-    error: solver.backend.device_failure) as one StageError line naming `where`, the device and
+    error: solver.backend.device_failure) as one DeviceFailed line naming `where`, the device and
     what it said, then `then`; the traceback goes to the debug log (SPHSHOT_LOG=DEBUG). None for
     any other exception."""
     if not isinstance(exc, RuntimeError):
@@ -65,12 +65,12 @@ def device_failed(exc: BaseException, where: str, then: str) -> StageError | Non
     if what is None:
         return None
     log.debug("%s: the device's error", where, exc_info=exc)
-    return StageError(f"{where}: the {current_arch()} device failed: {what}; {then}")
+    return DeviceFailed(f"{where}: the {current_arch()} device failed: {what}; {then}")
 
 
 @contextlib.contextmanager
 def device_failures(where: str, then: str):
-    """device_failed() for the block: a device's failure raised as its StageError."""
+    """device_failed() for the block: a device's failure raised as DeviceFailed."""
     try:
         yield
     except RuntimeError as exc:
