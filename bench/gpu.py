@@ -120,10 +120,8 @@ import solver.backend as sb
 sb._current, sb._arch_name = (backend, 0), backend
 sys.argv = sys.argv[:1]
 from bench.solver import scene
-from pipeline.stages.sim import initial_state, make_solver, solver_params
-spec = scene(n, 0.006 * (50_232 / n) ** (1 / 3), solver, fluid="thin")
-params = solver_params(spec)
-s = make_solver(spec, params, initial_state(spec, params))
+from pipeline.stages.sim import fresh_solver
+_params, s = fresh_solver(scene(n, 0.006 * (50_232 / n) ** (1 / 3), solver, fluid="thin"))
 steps = s.steps
 while s.steps < steps + 5:           # compile and warm up the path the stage runs
     s.advance_some(1e30)

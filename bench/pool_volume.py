@@ -49,12 +49,11 @@ def main() -> None:
     init_taichi("cpu", 2)
     import pyvista as pv
 
-    from pipeline.stages.sim import frame_attrs, initial_state, make_solver, solver_params
+    from pipeline.stages.sim import frame_attrs, fresh_solver
     from pipeline.stages.surface import surface_frame
 
     spec = pool_spec(a.depth, a.set)
-    params = solver_params(spec)
-    s = make_solver(spec, params, initial_state(spec, params))
+    params, s = fresh_solver(spec)
     r, lo, hi = params.particle_radius, np.array(params.domain_min), np.array(params.domain_max)
 
     def mesh_volume():

@@ -55,12 +55,11 @@ def main() -> None:
     from solver.backend import init_taichi
     init_taichi("cpu", 2)
     from pipeline.spec import ShotSpec
-    from pipeline.stages.sim import initial_state, make_solver, solver_params
+    from pipeline.stages.sim import fresh_solver
     from solver.types import P_GY
 
     spec = ShotSpec.model_validate(job(a.case, a.physical, a.max_density_error, a.max_divergence_error))
-    params = solver_params(spec)
-    s = make_solver(spec, params, initial_state(spec, params))
+    params, s = fresh_solver(spec)
     prm = s.prm.to_numpy()
     g = float(prm[P_GY])
     layer = np.round(s.snapshot()["position"][:, 1], 4)

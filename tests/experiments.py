@@ -45,15 +45,14 @@ def collapsing_column(tank_length: float, a: float = 0.1, r: float = 0.005, dept
     started as the sim stage starts it. `sim`, `fluid` and `domain` add job keys (a viscosity, a
     surface tension, the walls that hold it)."""
     from pipeline.spec import ShotSpec
-    from pipeline.stages.sim import initial_state, make_solver, solver_params
+    from pipeline.stages.sim import fresh_solver
 
     spec = ShotSpec.model_validate({
         "shot": {"name": "martin_moyce"}, "sim": {"particle_radius": r, **(sim or {})},
         "domain": {"min": (0, 0, 0), "max": (tank_length, 2.5 * a, depth), "friction": 0.0, **(domain or {})},
         "fluids": ({"name": "water", **(fluid or {"viscosity": 0.0}),
                     "blocks": ({"min": (0, 0, 0), "max": (a, 2 * a, depth)},)},)})
-    params = solver_params(spec)
-    return params, make_solver(spec, params, initial_state(spec, params))
+    return fresh_solver(spec)
 
 
 def front(position: np.ndarray, a: float, r: float) -> float:

@@ -17,12 +17,11 @@ def _taichi(taichi_cpu):
 
 def dfsph(spec_dict):
     """(spec, params, solver) for a job dict, started as the sim stage starts it."""
-    from pipeline.stages.sim import initial_state, make_solver, solver_params
+    from pipeline.stages.sim import fresh_solver
 
     spec = ShotSpec.model_validate(spec_dict)
     assert spec.sim.solver == "dfsph"
-    params = solver_params(spec)
-    return spec, params, make_solver(spec, params, initial_state(spec, params))
+    return (spec, *fresh_solver(spec))
 
 
 # ------------------------------------------------------------------------------- hydrostatics

@@ -34,10 +34,8 @@ def small_dambreak(mesh: bool = False, solver: str = "dfsph"):
 def run_on(backend: str, t_end: float, mesh: bool = False, solver: str = "dfsph"):
     from solver.backend import init_taichi
     init_taichi(backend, 1 if backend == "cpu" else 0)
-    from pipeline.stages.sim import initial_state, make_solver, solver_params
-    spec = small_dambreak(mesh, solver)
-    params = solver_params(spec)
-    s = make_solver(spec, params, initial_state(spec, params))
+    from pipeline.stages.sim import fresh_solver
+    _params, s = fresh_solver(small_dambreak(mesh, solver))
     s.advance_to(t_end)
     return s.snapshot()
 

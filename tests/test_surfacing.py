@@ -680,15 +680,14 @@ def test_a_block_from_the_solver_keeps_its_volume_and_its_corners(fill):
     with m / rho the cubic block's corners stood out 1.88 r). The middle of the top face lies
     within 0.1 r (cubic) or 0.15 r (fcc) of half a plane step above the top plane, where the
     lattice's cells end (measured -0.03 r cubic, +0.09 r fcc)."""
-    from pipeline.stages.sim import frame_attrs, initial_state, make_solver, solver_params
+    from pipeline.stages.sim import frame_attrs, fresh_solver
     from pipeline.stages.surface import surface_frame
     from pipeline.spec import ShotSpec
     import pyvista as pv
 
     spec = ShotSpec.model_validate(tiny_spec(((0.1, 0.1, 0.1), (0.2, 0.2, 0.2)), ((0, 0, 0), (0.3, 0.3, 0.3)),
                                              sim={"particle_radius": R_PART, "fill": fill}, surface={"grids": ()}))
-    params = solver_params(spec)
-    s = make_solver(spec, params, initial_state(spec, params))
+    params, s = fresh_solver(spec)
     data = s.snapshot()
     p = data["position"]
     assert data["density"].min() < 0.65 * 1000.0        # the corners' SPH density (0.61 of rest)

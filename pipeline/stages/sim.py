@@ -183,9 +183,17 @@ def build_solver(spec, paths, first_frame: int):
         log.info("sim: resuming from checkpoint at frame %d (t = %.4f s, step %d)", frame,
                  attrs["time"], attrs["step"])
         return params, solver, frame
-    solver = make_solver(spec, params, initial_state(spec, params))
+    _params, solver = fresh_solver(spec, params)
     log.info("sim: %s, %d particles, h = %.4g m", spec.sim.solver, solver.n, params.h)
     return params, solver, None
+
+
+def fresh_solver(spec, params: SolverParams | None = None) -> tuple[SolverParams, object]:
+    """(params, solver) at the shot's first frame, the fluid blocks just filled: what the stage
+    starts from without a checkpoint (benches and tests start here too). `params`: the spec's
+    solver_params where the caller has them already (a mesh collider's are costly)."""
+    params = params or solver_params(spec)
+    return params, make_solver(spec, params, initial_state(spec, params))
 
 
 class BackgroundWriter:
