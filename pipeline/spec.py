@@ -148,7 +148,8 @@ class Sim(Strict):
         return given or wcsph_default
 
 
-NoSlipWall = Literal["-x", "+x", "-y", "+y", "-z", "+z", "colliders"]
+Face = Literal["-x", "+x", "-y", "+y", "-z", "+z"]          # a face of the domain's box
+NoSlipWall = Literal[Face, "colliders"]
 NO_SLIP_ALL: tuple[str, ...] = NoSlipWall.__args__
 
 
@@ -162,7 +163,7 @@ class Domain(Strict):
     # list of the box's faces and "colliders" (a slice of a wide channel: its sides free)
     no_slip: bool | tuple[NoSlipWall, ...] = True
     # faces with no wall: particles that leave through one are removed (and counted in the log)
-    open: tuple[Literal["-x", "+x", "-y", "+y", "-z", "+z"], ...] = ()
+    open: tuple[Face, ...] = ()
 
     @field_validator("no_slip", mode="before")
     @classmethod

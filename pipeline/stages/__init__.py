@@ -55,8 +55,8 @@ class Stage:
 def device_failed(exc: BaseException, where: str, then: str) -> DeviceFailed | None:
     """A failure of the compute device (out of device memory, a GPU lost or reset, a driver's
     error: solver.backend.device_failure) as one DeviceFailed line naming `where`, the device and
-    what it said, then `then`; the traceback goes to the debug log (SPHSHOT_LOG=DEBUG). None for
-    any other exception."""
+    what it said, then `then` and the other way out (another device); the traceback goes to the
+    debug log (SPHSHOT_LOG=DEBUG). None for any other exception."""
     if not isinstance(exc, RuntimeError):
         return None
     from solver.backend import current_arch, device_failure
@@ -65,7 +65,8 @@ def device_failed(exc: BaseException, where: str, then: str) -> DeviceFailed | N
     if what is None:
         return None
     log.debug("%s: the device's error", where, exc_info=exc)
-    return DeviceFailed(f"{where}: the {current_arch()} device failed: {what}; {then}")
+    return DeviceFailed(f"{where}: the {current_arch()} device failed: {what}; {then}, "
+                        f'or run on another device (sim.backend = "cpu")')
 
 
 @contextlib.contextmanager

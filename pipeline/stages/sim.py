@@ -27,7 +27,6 @@ from . import device_failed, device_failures
 log = logging.getLogger("sphshot")
 _STOP = {"signal": None}
 FEWER = "use fewer particles (a larger sim.particle_radius or smaller fluid blocks)"
-OTHER_DEVICE = 'or run on another device (sim.backend = "cpu")'
 
 
 def _request_stop(signum, _frame):
@@ -281,7 +280,7 @@ def run(spec, frames, paths, progress) -> None:
     last = todo[-1]
     stage_hash = stage_hashes(spec)["sim"]
     try:
-        with device_failures("sim: setting up", f"use fewer particles, {OTHER_DEVICE}"):
+        with device_failures("sim: setting up", "use fewer particles"):
             params, solver, ckpt_frame = build_solver(spec, paths, todo[0])
     except TooLarge as exc:
         raise StageError(f"sim: {exc}; {FEWER}") from exc
@@ -333,7 +332,7 @@ def run(spec, frames, paths, progress) -> None:
     except BaseException as exc:
         writer.close(quiet=True)       # the frames before the error still reach the disk
         failure = device_failed(exc, f"frame {frame:04d}: sim", "the frames before it are kept: run again "
-                                f"to resume from the last checkpoint, {OTHER_DEVICE}")
+                                "to resume from the last checkpoint")
         if failure is not None:
             raise failure from exc
         raise

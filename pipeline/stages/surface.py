@@ -93,8 +93,7 @@ def _write_frame(spec, frame: int, paths) -> list:
     except OSError as exc:
         raise StageError(f"frame {frame:04d}: surfacing: cannot read {src}: {exc}") from exc
     try:
-        with device_failures(f"frame {frame:04d}: surfacing", 'the frames done are kept: run again for the '
-                             'rest, or run on another device (sim.backend = "cpu")'):
+        with device_failures(f"frame {frame:04d}: surfacing", "the frames done are kept: run again for the rest"):
             field, mesh, per_fluid, spray = surface_frame(spec, data, attrs, frame)
     except SurfacingError as exc:
         raise StageError(f"frame {frame:04d}: surfacing: {exc}") from exc
