@@ -30,13 +30,6 @@ def flat(c, dims) -> ti.i32:
     return c.x + dims.x * (c.y + dims.y * c.z)
 
 
-
-@ti.kernel
-def k_fill_i(a: I1, value: ti.i32):
-    for i in a:
-        a[i] = value
-
-
 # The sort's passes: each a kernel of its own (SPHSolver's separate launches) and a step of
 # k_rebuild (all in one launch).
 

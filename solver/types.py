@@ -48,7 +48,9 @@ P_SIZE = 17
 def pack_constants(h, gravity, gamma, lattice, grad_scale, threshold, lo, hi, restitution, friction,
                    keep) -> list[float]:
     """The values of Consts and Box in the order consts_of and box_of read them."""
-    return [h, *gravity, gamma, lattice, grad_scale, threshold, *lo, *hi, restitution, friction, keep]
+    values = [h, *gravity, gamma, lattice, grad_scale, threshold, *lo, *hi, restitution, friction, keep]
+    assert len(values) == P_SIZE, "pack_constants and the P_* indices disagree"
+    return values
 
 
 @ti.func
