@@ -9,10 +9,12 @@ Every key is documented in docs/jobspec.md.
 """
 from __future__ import annotations
 
+import difflib
 import math
 import os
 import re
 import tomllib
+import typing
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal, Union
 
@@ -577,12 +579,43 @@ def _dotted(loc: tuple) -> str:
     return out or "<root>"
 
 
+def _models_in(annotation: Any) -> list[type[BaseModel]]:
+    """The models a field's annotation holds: itself, or inside a tuple, union or Annotated."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    return [m for arg in typing.get_args(annotation) for m in _models_in(arg)]
+
+
+def _keys_beside(loc: tuple) -> set[str]:
+    """The keys the table holding loc's last key takes (the union's, for a collider whose
+    type pydantic names in loc)."""
+    models: list[type[BaseModel]] = [ShotSpec]
+    for part in loc[:-1]:
+        if isinstance(part, int):
+            continue
+        fields = [m.model_fields[part] for m in models if part in m.model_fields]
+        if fields:
+            models = [m for f in fields for m in _models_in(f.annotation)]
+        else:       # pydantic's tag of a union member (a collider's type): that member
+            models = [m for m in models if "type" in m.model_fields
+                      and part in typing.get_args(m.model_fields["type"].annotation)]
+    return {f.alias or name for m in models for name, f in m.model_fields.items()} - {"job_dir"}
+
+
+def _meant(err: dict) -> str | None:
+    """For an unknown key, the known key of the same table it is most likely a misspelling of."""
+    close = difflib.get_close_matches(str(err["loc"][-1]), sorted(_keys_beside(tuple(err["loc"]))), n=1,
+                                      cutoff=0.7)
+    return close[0] if close else None
+
+
 def _describe(err: dict) -> str:
     where = _dotted(err["loc"])
     got = err.get("input")
     msg = err["msg"]
     if err["type"] == "extra_forbidden":
-        return f"{where}: unknown key"
+        near = _meant(err)
+        return f"{where}: unknown key" + (f" (did you mean {near!r}?)" if near else "")
     if err["type"] == "missing":
         return f"{where}: required key is missing"
     if err["type"] == "value_error":
@@ -663,4 +696,7 @@ def load_spec(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> 
         locs = [tuple(e["loc"]) for e in errs]
         errs = [e for e in errs if not any(len(o) > len(e["loc"]) and o[:len(e["loc"])] == tuple(e["loc"])
                                            for o in locs)]
+        # a required key spelt wrong is one mistake: the unknown key's line names the key meant
+        meant = {tuple(e["loc"][:-1]) + (_meant(e),) for e in errs if e["type"] == "extra_forbidden"}
+        errs = [e for e in errs if not (e["type"] == "missing" and tuple(e["loc"]) in meant)]
         raise SpecError(source, list(dict.fromkeys(_describe(e) for e in errs))) from None

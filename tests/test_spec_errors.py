@@ -34,6 +34,10 @@ CORPUS = [
     ("unknown-top-key", GOOD + "\n[extra]\nx = 1\n", [], "extra: unknown key"),
     ("unknown-nested-key", GOOD.replace("particle_radius = 0.02", "particle_radius = 0.02\nradius = 1"),
      [], "sim.radius: unknown key"),
+    ("unknown-key-near-a-known-one", GOOD.replace("particle_radius = 0.02", 'particle_radius = 0.02\nsolvr = "dfsph"'),
+     [], "sim.solvr: unknown key (did you mean 'solver'?)"),
+    ("unknown-collider-key-near-its-own", GOOD + '\n[[colliders]]\ntype = "sphere"\ncentre = [0.5, 0.2, 0.2]\n'
+     'radius = 0.05\n', [], "colliders[0].centre: unknown key (did you mean 'center'?)"),
     ("wrong-type-string-for-float", GOOD.replace("particle_radius = 0.02", 'particle_radius = "0.02"'),
      [], "sim.particle_radius: expected a valid number"),
     ("negative-radius", GOOD.replace("particle_radius = 0.02", "particle_radius = -0.01"),
