@@ -23,9 +23,10 @@ def parse_frames(text: str, shot: range, what: str = "--frames") -> list[int]:
         if step < 1:
             raise UsageError(f"{what}: step must be >= 1, got {step}")
         frames.extend(range(a, b + 1, step))
-    outside = [f for f in frames if f not in shot]
+    outside = sorted(set(f for f in frames if f not in shot))
     if outside:
-        raise UsageError(f"{what}: frame {outside[0]} is outside the shot's range "
+        which = f"frames {format_frames(outside)}" if len(outside) > 1 else f"frame {outside[0]}"
+        raise UsageError(f"{what}: {text.strip()} asks for {which}, outside the shot's range "
                          f"{shot.start}-{shot.stop - 1}")
     return sorted(set(frames))
 

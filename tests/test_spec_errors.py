@@ -74,7 +74,7 @@ CORPUS = [
     ("bad-set-type", GOOD, ["--set", "shot.frame_end=\"ten\""], "shot.frame_end: expected a valid integer"),
     ("set-unknown-key", GOOD, ["--set", "sim.radius=0.1"], "sim.radius: unknown key"),
     ("bad-frame-range", GOOD, ["--frames", "3-2"], "--frames: range end must be >= start, got 3-2"),
-    ("frame-outside-shot", GOOD, ["--frames", "1-9"], "--frames: frame 5 is outside the shot's range 1-4"),
+    ("frame-outside-shot", GOOD, ["--frames", "1-9"], "--frames: 1-9 asks for frames 5-9, outside the shot's range 1-4"),
     ("garbage-frames", GOOD, ["--frames", "one-two"], "--frames: expected A, A-B or A-BxSTEP"),
     ("bad-stage", GOOD, ["--stage", "comp"], "argument --stage: invalid choice: 'comp'"),
     ("kernel-too-small", GOOD.replace("particle_radius = 0.02", "particle_radius = 0.02\nkernel_radius = 0.5"), [],
