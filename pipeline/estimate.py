@@ -84,10 +84,13 @@ class Estimate:
         taichi = TAICHI_BYTES if {"sim", "surface"} & set(stages) else 0.0
         return BASE_BYTES + taichi + max(self.parts(stages).values(), default=0.0)
 
-    def line(self) -> str:
-        return (f"{_count(self.particles)} particles; memory {_gb(self.memory)} (sim {_gb(self.sim)}, "
-                f"surfacing {_gb(self.surface)}, collider grids {_gb(self.colliders)}, rendering "
-                f"{_gb(self.render)}); disk {_gb(self.disk)}")
+    def line(self, stages=STAGES) -> str:
+        """The estimate in words: the peak of these stages, then what each holds at its own
+        (they run in turn, so the peak is not their sum)."""
+        each = {"sim": f"sim {_gb(self.sim)}, collider grids {_gb(self.colliders)}",
+                "surface": f"surfacing {_gb(self.surface)}", "render": f"rendering {_gb(self.render)}"}
+        return (f"{_count(self.particles)} particles; memory {_gb(self.memory_for(stages))} at the peak (the "
+                f"stages run in turn: {', '.join(each[s] for s in stages)}); disk {_gb(self.disk)}")
 
 
 def estimate(spec) -> Estimate:
@@ -166,7 +169,7 @@ def too_big(spec, est: Estimate, max_memory: float | None = None, stages=tuple(S
             culprit = "the mesh colliders' voxel_size (or their scale)"
         else:
             culprit = f"sim.particle_radius = {spec.sim.particle_radius:g} m (a larger radius or smaller fluid blocks)"
-        return f"the shot needs {est.line()}: over the {_gb(limit, '')} {where}; change {culprit}"
+        return f"the shot needs {est.line(stages)}: over the {_gb(limit, '')} {where}; change {culprit}"
     free, written = free_disk(spec.output_root), used_disk(spec.output_root)
     if est.disk - written > free:
         more = f" more (of {_gb(est.disk, '')} in all)" if written else ""

@@ -151,6 +151,20 @@ def test_a_run_without_the_render_stage_is_estimated_without_it(tmp_path):
     assert main(["run", str(job), "--stage", "render", "--max-memory", "0.7"]) == 0
 
 
+def test_a_refused_run_says_the_peak_of_its_own_stages(tmp_path, capsys):
+    """The stages run in turn, so the estimate's memory is their peak, not their sum, and a run
+    of some stages is refused with those stages' figures: a render-only task's line says what
+    rendering needs and nothing of the sim it will not run."""
+    job = tmp_path / "job.toml"
+    job.write_text(GOOD)
+    assert main(["run", str(job), "--stage", "render", "--max-memory", "0.5"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "at the peak (the stages run in turn: rendering about" in line and "sim about" not in line, line
+    assert main(["validate", str(job)]) == 0
+    out = capsys.readouterr().out
+    assert "at the peak (the stages run in turn: sim about" in out and "rendering about" in out, out
+
+
 def test_estimate_counts_the_fill_and_validate_prints_it(tmp_path, capsys):
     """The estimate's particle count is the fill lattice's (solver/fill.py) for the example
     jobs, less nothing but what colliders take (within 2 %); validate prints the estimate."""
