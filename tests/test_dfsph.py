@@ -482,6 +482,17 @@ def test_no_slip_walls_hold_a_viscous_flow_at_the_analytic_rate():
     assert rates[False] < 0.8 * rate, (rates, rate)
 
 
+def test_the_spec_and_the_solver_name_the_same_no_slip_walls():
+    """domain.no_slip's names (pipeline.spec, which must not import Taichi) and the rows of the
+    solver's wall table (solver.params) are two lists of one vocabulary: the stage passes the
+    names through, and the solver holds a wall where its row's name is among them, so a name
+    in one and not the other would leave that wall silently free-slip."""
+    from pipeline.spec import NO_SLIP_ALL
+    from solver.params import NO_SLIP_ROWS
+
+    assert sorted(NO_SLIP_ALL) == sorted(NO_SLIP_ROWS)
+
+
 def test_no_slip_on_the_faces_named_holds_the_fluid_there_only():
     """domain.no_slip as a list of faces. v_x = A sin(2 pi y / L), the same across z, is the mode
     of a slice of a wide channel: its y walls hold the fluid, its z sides are free. With
