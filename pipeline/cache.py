@@ -367,10 +367,34 @@ def output_problem(root: Path) -> str | None:
     return None
 
 
-def remove_if_empty(paths: ShotPaths) -> bool:
+def first_missing(folder: Path) -> Path | None:
+    """The outermost folder of `folder`'s path that does not exist yet (what a first run will
+    make, its parents included), or None where `folder` exists."""
+    folder = Path(folder)
+    if folder.exists():
+        return None
+    while not folder.parent.exists() and folder.parent != folder:
+        folder = folder.parent
+    return folder
+
+
+def remove_if_empty(paths: ShotPaths, made: Path | None = None) -> bool:
     """Remove a shot version that holds nothing but its manifest and empty folders (what a
-    first run that failed before publishing a frame leaves). Any other file (a frame, a live
-    worker's claim or temporary) keeps it. Returns whether it was removed."""
+    first run that failed before publishing a frame leaves), and its parents up to `made`
+    (first_missing() before the run: <output>/<name> where the run made it) where they are
+    empty. Any other file (a frame, a live worker's claim or temporary) keeps it. Returns
+    whether the version was removed."""
+    removed = _remove_version_if_empty(paths)
+    if removed and made is not None and made in paths.root.parents:
+        for folder in paths.root.parents:
+            with contextlib.suppress(OSError):
+                folder.rmdir()          # only an empty one goes
+            if folder == made:
+                break
+    return removed
+
+
+def _remove_version_if_empty(paths: ShotPaths) -> bool:
     root = paths.root
     if not root.is_dir():
         return False

@@ -81,13 +81,13 @@ def run_stages(spec: ShotSpec, stages: list[str], frames: list[int], *, force: b
     executor = executor or SerialExecutor()
     progress = progress or Progress()
     shot = ShotCache(spec)
-    fresh = not shot.paths.root.exists()
+    made = cache.first_missing(shot.paths.root)
     try:
         with claims.VersionRun(shot.paths.root, {s: shot.hashes[s] for s in stages}):
             _run(spec, shot, stages, frames, force, executor, progress)
     except BaseException:
-        if fresh:       # a failed first run leaves no empty version folder behind
-            cache.remove_if_empty(shot.paths)
+        if made is not None:    # a failed first run leaves no empty folders behind
+            cache.remove_if_empty(shot.paths, made)
         raise
 
 

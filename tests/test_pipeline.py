@@ -128,11 +128,15 @@ def test_surface_grids_choose_what_the_vdb_holds(job_copy):
 
 
 def test_surface_waits_on_missing_sim_frames(job_copy):
+    """Exit 4, and a first run that waits leaves no folder behind: neither the shot's version
+    nor the <output>/<name> folders above it that it made (an empty shots/dambreak was left)."""
     job = job_copy()
+    (job.parent / "out" / "kept").mkdir(parents=True)
     proc = sphshot("run", job, *small(), "--stage", "surface", "--frames", "3-4")
     assert proc.returncode == 4, proc.stderr
     assert "waiting on sim frame 3" in proc.stderr
     assert "Traceback" not in proc.stderr
+    assert sorted(p.name for p in (job.parent / "out").iterdir()) == ["kept"]
 
 
 def test_unstable_sim_stops_naming_frame_and_parameter_and_keeps_earlier_frames(job_copy):
