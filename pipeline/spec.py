@@ -306,7 +306,7 @@ class Surface(Strict):
     # OpenVDB grids written per frame; none: no .vdb at all (the level set is most of a frame's time)
     grids: tuple[Literal["surface", "density", "velocity"], ...] = ("surface", "density", "velocity")
 
-    ISO: ClassVar[dict[str, float]] = {"isotropic": 0.5, "anisotropic": 0.2}
+    ISO: ClassVar[dict[str, float]] = {"isotropic": 0.5, "anisotropic": 0.14}
 
     @property
     def iso_value(self) -> float:

@@ -50,6 +50,7 @@ class Field:
         self.velocity_rows = velocity_rows      # the velocity on the device: node-major vectors
         self._upper = None
         self.spray = None                       # mask of the particles left out as spray (input order)
+        self.edge_power = 1.0                   # marching cubes interpolates color^edge_power (surfacing/mc.py)
 
     @property
     def n_blocks(self) -> int:

@@ -7,8 +7,16 @@ them directly. Four kernels, each parallel over blocks and serial inside one:
 1. count_vertices: per block of the band (the blocks whose cells cross the level and their
    upper neighbours: every crossed edge's lower node lies in one), each node's crossed edges
    (3 bits) and how many the nodes before it own (node_first);
-2. place_vertices: the vertex on each such edge, by linear interpolation, in metres: its
-   block's first node (in float64 on the host, rounded once) plus its place in the block;
+2. place_vertices: the vertex on each such edge, in metres: its block's first node (in
+   float64 on the host, rounded once) plus its place in the block. The place along the edge
+   is where the linear interpolation of color^power between the edge's nodes reaches
+   iso^power (power 1: plain linear interpolation). An anisotropic field (power 1/3) falls to
+   its iso within about two cells, as the cube of the distance to its kernels' edge (the
+   spline kernels' tails, (1 - q)^3, squashed along the normal). Interpolated linearly, its
+   vertices stood out where the surface lay between two grid planes and not where it met
+   one, so a surface tilted against the grid came out in terraces a cell apart in height
+   (0.9 mm rms on the example's falling column, bench/RESULTS.md); its cube root is about
+   linear there;
 3. count_triangles: per block whose cells cross the level, each cell's case and the block's
    triangle count;
 4. emit_triangles: each cell's triangles from the table, a vertex id being node_first of the
@@ -83,14 +91,15 @@ def count_vertices(color: R8, nbr: I2, iso: ti.f32, edges: U2, node_first: I2, c
 
 
 @ti.kernel
-def place_vertices(color: R8, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node_first: I2, origin: F2,
-                   cell: ti.f32, points: V3, vnbr: I2, velocity: V3, vertex_velocity: V3,
+def place_vertices(color: R8, nbr: I2, iso: ti.f32, power: ti.f32, offset: I1, edges: U2, node_first: I2,
+                   origin: F2, cell: ti.f32, points: V3, vnbr: I2, velocity: V3, vertex_velocity: V3,
                    with_velocity: ti.template()):
-    """points[v]: vertex v (linear interpolation along its edge), its block row's first node
-    origin[s] plus its place in the block, in metres; node_first becomes global (adds
-    offset[s]). With velocity (node-major vectors, vnbr[s, col]: where the velocity of
-    nbr[s, col]'s block is), vertex_velocity[v] the same interpolation of the edge's nodes'
-    velocities."""
+    """points[v]: vertex v (where color^power, linear along its edge, reaches iso^power), its
+    block row's first node origin[s] plus its place in the block, in metres; node_first
+    becomes global (adds offset[s]). With velocity (node-major vectors, vnbr[s, col]: where
+    the velocity of nbr[s, col]'s block is), vertex_velocity[v] the linear interpolation of
+    the edge's nodes' velocities at the same place."""
+    lifted_iso = ti.pow(iso, power)
     for s in offset:
         for n in range(B3):
             v = offset[s] + node_first[s, n]
@@ -103,6 +112,9 @@ def place_vertices(color: R8, nbr: I2, iso: ti.f32, offset: I1, edges: U2, node_
                     if bits >> a & 1:
                         c1 = _value(color, nbr, s, x + int(a == 0), y + int(a == 1), z + int(a == 2))
                         t = (iso - c0) / (c1 - c0)
+                        if power != 1.0:
+                            g0 = ti.pow(ti.max(c0, 0.0), power)
+                            t = (lifted_iso - g0) / (ti.pow(ti.max(c1, 0.0), power) - g0)
                         local = ti.math.vec3(x, y, z)
                         local[a] += t
                         points[v] = ti.math.vec3(origin[s, 0], origin[s, 1], origin[s, 2]) + cell * local
@@ -231,7 +243,7 @@ def _faces(faces: np.ndarray):
 
 
 def marching_cubes(rows, upper: np.ndarray, blocks: np.ndarray, todo: np.ndarray, iso: float, cell: float,
-                   velocity=None, velocity_slot: np.ndarray | None = None):
+                   velocity=None, velocity_slot: np.ndarray | None = None, power: float = 1.0):
     """(points, faces, vertex_velocity, points_dev, faces_dev): the `iso` surface of a
     block-sparse field of node spacing `cell` as vertices in metres (float32), triangles
     (int32) counter-clockwise seen from the side below `iso` (outward for a fluid whose color
@@ -242,7 +254,8 @@ def marching_cubes(rows, upper: np.ndarray, blocks: np.ndarray, todo: np.ndarray
     8) each block and its upper neighbours at block offsets CORNER[1:] (Field.upper); blocks:
     (nb, 3) block coordinates; todo: the blocks that own a cell crossing `iso` (a superset will
     do). velocity: node-major vectors on the device, velocity_slot (nb + 1,) where each
-    block's are."""
+    block's are. power: the vertices sit where color^power, linear along their edges, reaches
+    iso^power (1: linear interpolation of the color; see place_vertices)."""
     nb = len(blocks)
     tri_edges, tri_count = (D.upload(a) for a in table())
     up = upper[todo]                                                    # 8 columns
@@ -268,7 +281,7 @@ def marching_cubes(rows, upper: np.ndarray, blocks: np.ndarray, todo: np.ndarray
     # origin keeps its precision; the kernels need no 64-bit floats, which some Vulkan devices
     # lack); the vertices add their place in the block on the device
     origin = D.upload(blocks[band] * (B * cell), ti.f32)
-    place_vertices(rows, nbr_dev, iso, D.upload(_exclusive_sum(n_vert)), edges, node_first, origin, cell,
+    place_vertices(rows, nbr_dev, iso, power, D.upload(_exclusive_sum(n_vert)), edges, node_first, origin, cell,
                    points, vnbr, velocity if with_velocity else vertex_velocity, vertex_velocity, with_velocity)
 
     cases = D.empty(ti.u8, (len(todo), B3))

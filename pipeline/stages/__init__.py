@@ -114,7 +114,7 @@ STAGES: dict[str, Stage] = {s.name: s for s in (
           hashed=_sim_sections, format_version=3),
     Stage("surface", "sim", "pipeline.stages.surface", per_frame=True,
           frame_files=_surface_files,
-          hashed=lambda spec: {"surface": spec.surface.model_dump()}, format_version=3),   # 3: spray file
+          hashed=lambda spec: {"surface": spec.surface.model_dump()}, format_version=4),   # 3: spray file; 4: cube-root vertices
     Stage("render", "surface", "pipeline.stages.render", per_frame=True,
           frame_files=lambda paths, frame: [paths.render_frame(frame)],
           hashed=_render_sections, format_version=1),
