@@ -486,10 +486,12 @@ def test_kept_renderer_renders_as_a_new_one(tmp_path):
     assert np.asarray(Image.open(other_paths.render_frame(2))).shape == (90, 160, 3)
 
 
-def test_golden_catches_a_moved_camera(tmp_path):
-    """The tolerance is tight enough to see a real change (here: the camera 10 cm off)."""
+def test_golden_catches_a_moved_camera(tmp_path, monkeypatch):
+    """The tolerance is tight enough to see a real change (here: the camera 10 cm off). Never
+    with SPHSHOT_UPDATE_GOLDEN set, which would write this image over surface_f2's golden."""
     from pipeline.stages import render
 
+    monkeypatch.delenv("SPHSHOT_UPDATE_GOLDEN", raising=False)
     spec = scene(tmp_path, camera={"position": (1.3, 0.8, 1.3), "focal_point": (0.3, 0.15, 0.2), "fov": 40.0})
     paths = synthetic_meshes(spec, [2])
     render.run(spec, [2], paths, quiet())
