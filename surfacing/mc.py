@@ -112,9 +112,11 @@ def place_vertices(color: R8, nbr: I2, iso: ti.f32, power: ti.f32, offset: I1, e
                     if bits >> a & 1:
                         c1 = _value(color, nbr, s, x + int(a == 0), y + int(a == 1), z + int(a == 2))
                         t = (iso - c0) / (c1 - c0)
-                        if power != 1.0:
+                        if power != 1.0:    # (two nodes a float apart may lift to one value: keep t then)
                             g0 = ti.pow(ti.max(c0, 0.0), power)
-                            t = (lifted_iso - g0) / (ti.pow(ti.max(c1, 0.0), power) - g0)
+                            dg = ti.pow(ti.max(c1, 0.0), power) - g0
+                            if dg != 0.0:
+                                t = ti.math.clamp((lifted_iso - g0) / dg, 0.0, 1.0)
                         local = ti.math.vec3(x, y, z)
                         local[a] += t
                         points[v] = ti.math.vec3(origin[s, 0], origin[s, 1], origin[s, 2]) + cell * local
