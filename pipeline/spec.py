@@ -609,12 +609,12 @@ def _meant(err: dict) -> str | None:
     return close[0] if close else None
 
 
-def _describe(err: dict) -> str:
+def _describe(err: dict, near: str | None = None) -> str:
+    """One line for a validation error; `near`: for an unknown key, the key it likely misspells."""
     where = _dotted(err["loc"])
     got = err.get("input")
     msg = err["msg"]
     if err["type"] == "extra_forbidden":
-        near = _meant(err)
         return f"{where}: unknown key" + (f" (did you mean {near!r}?)" if near else "")
     if err["type"] == "missing":
         return f"{where}: required key is missing"
@@ -697,6 +697,7 @@ def load_spec(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> 
         errs = [e for e in errs if not any(len(o) > len(e["loc"]) and o[:len(e["loc"])] == tuple(e["loc"])
                                            for o in locs)]
         # a required key spelt wrong is one mistake: the unknown key's line names the key meant
-        meant = {tuple(e["loc"][:-1]) + (_meant(e),) for e in errs if e["type"] == "extra_forbidden"}
+        near = {id(e): _meant(e) for e in errs if e["type"] == "extra_forbidden"}
+        meant = {tuple(e["loc"][:-1]) + (near[id(e)],) for e in errs if id(e) in near}
         errs = [e for e in errs if not (e["type"] == "missing" and tuple(e["loc"]) in meant)]
-        raise SpecError(source, list(dict.fromkeys(_describe(e) for e in errs))) from None
+        raise SpecError(source, list(dict.fromkeys(_describe(e, near.get(id(e))) for e in errs))) from None
