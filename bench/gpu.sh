@@ -43,7 +43,15 @@ if ! $PY -c "import pyopenvdb" 2>/dev/null; then      # mesh colliders: level se
 fi
 $PY -c "import taichi, numpy, pydantic, h5py" || { echo "gpu.sh: packages missing: run 'bash bench/gpu.sh prepare' here and carry .gpu" >&2; exit 3; }
 
-echo "# $(date -u +%Y-%m-%dT%H:%MZ) $(nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo 'no nvidia-smi') $(git rev-parse --short HEAD 2>/dev/null)"
+# The tree that ran: the device's copy carries the working tree, but its git HEAD may be an older
+# commit's, so the header names the working tree's own tree hash (here: `git add -A` into a
+# scratch index, then `git write-tree`; compare with `git rev-parse --short HEAD^{tree}`).
+tree() {
+  local index; index=$(mktemp -u) || return
+  GIT_INDEX_FILE=$index git add -A 2>/dev/null && GIT_INDEX_FILE=$index git write-tree 2>/dev/null | cut -c1-7
+  rm -f "$index"
+}
+echo "# $(date -u +%Y-%m-%dT%H:%MZ) $(nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo 'no nvidia-smi') tree $(tree) (HEAD $(git rev-parse --short HEAD 2>/dev/null))"
 if [ "${1:-}" != --dry ]; then
   echo "## GPU tests"
   # 10 CUDA tests: the nine of the twenty-fifth session took 100 s on the H200. The Vulkan ones
