@@ -310,6 +310,13 @@ class FrameRenderer:
                     rgb = (1 - fast) * 0.5 * (own + white) + fast * white
                     cloud.point_data["rgb"] = np.round(255 * rgb).astype(np.uint8)
                     kw = dict(scalars="rgb", rgb=True)
+                if look["shading"] == "ibl":
+                    # unlit, in their own color: under the sky's image-based light with
+                    # supersampling on (render.ssaa, the default) VTK drew lit sphere points as
+                    # nothing at all, and every water-look frame lost its spray (the showcase's
+                    # 19,000 droplets over the run-up at frame 24). At a few pixels across a
+                    # droplet's shading does not show.
+                    kw["lighting"] = False
                 out.append((cloud, dict(render_points_as_spheres=True, point_size=size, ambient=0.5, **kw)))
         return out
 
