@@ -388,11 +388,12 @@ def test_spray_shows_with_supersampling(tmp_path, look):
     default; the goldens run without it), the synthetic sphere as its water, and 40 spray
     points flying over the run-up: with them at least 20 pixels are brighter by 60 levels than
     without them (measured 45 under the water look, 43 under clay; a few points lie behind the
-    pillar or on each other), and the brightest of those is near the look's spray color. With
-    the water look's image-based sky, the colliders' polygon offset (a global VTK mode) and
-    supersampling together, VTK drew lit sphere points as nothing: 0 pixels changed, and every
-    default frame lost its spray (the showcase's 19,000 droplets over the run-up at frame 24)
-    until 2026-11-28."""
+    pillar or on each other), and the brightest of those is near the look's spray color. Lit
+    sphere points with per-point colors, under the water look's image-based sky, with
+    supersampling and the colliders' polygon offset (a global VTK mode), came out as nothing: 0
+    pixels changed (bisected: from 952c67c, the spray's colors per point, to 2026-11-28), and
+    every default frame with a collider lost its spray (the showcase's 19,000 droplets over the
+    run-up at frame 24)."""
     from pipeline.formats import write_points
     from pipeline.spec import load_spec
     from pipeline.stages import render

@@ -311,11 +311,12 @@ class FrameRenderer:
                     cloud.point_data["rgb"] = np.round(255 * rgb).astype(np.uint8)
                     kw = dict(scalars="rgb", rgb=True)
                 if look["shading"] == "ibl":
-                    # unlit, in their own color: under the sky's image-based light with
-                    # supersampling on (render.ssaa, the default) VTK drew lit sphere points as
-                    # nothing at all, and every water-look frame lost its spray (the showcase's
-                    # 19,000 droplets over the run-up at frame 24). At a few pixels across a
-                    # droplet's shading does not show.
+                    # unlit, in their own color: lit sphere points with per-point colors, under
+                    # the sky's image-based light, with supersampling on (render.ssaa, the
+                    # default) and a collider's polygon offset, came out as nothing in VTK, and
+                    # from 952c67c (the colors per point) every water-look frame with a collider
+                    # lost its spray (the showcase's 19,000 droplets over the run-up at frame 24).
+                    # At a few pixels across, a droplet's shading does not show.
                     kw["lighting"] = False
                 out.append((cloud, dict(render_points_as_spheres=True, point_size=size, ambient=0.5, **kw)))
         return out
