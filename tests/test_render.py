@@ -356,7 +356,9 @@ def test_a_frame_is_the_same_drawn_first_or_after_another(tmp_path):
 def test_spray_is_white_where_it_flies_and_its_fluids_color_at_rest(tmp_path):
     """The water look's spray points: the spray color (white) at a quarter of the shot's
     expected largest speed and above, half way between it and the point's own fluid's color at
-    rest (a droplet left on a stone is a bead, not foam; an oil droplet a golden one)."""
+    rest (a droplet left on a stone is a bead, not foam; an oil droplet a golden one); opaque in
+    flight, render.REST_OPACITY at rest (the beads the boulder example's stone keeps, drawn
+    unlit, read as a grid of lamps at full opacity)."""
     from pipeline.formats import write_points
     from pipeline.stages import render
 
@@ -374,12 +376,14 @@ def test_spray_is_white_where_it_flies_and_its_fluids_color_at_rest(tmp_path):
     finally:
         fr.close()
     assert len(clouds) == 1
-    rgb = clouds[0].point_data["rgb"] / 255.0
+    rgba = clouds[0].point_data["rgba"] / 255.0
+    rgb, alpha = rgba[:, :3], rgba[:, 3]
     white = np.asarray(fr.look["spray_color"])
     water, oil = (np.asarray(f.color) for f in spec.fluids)
     np.testing.assert_allclose(rgb[0], 0.5 * (white + water), atol=1 / 255)
     np.testing.assert_allclose(rgb[3], 0.5 * (white + oil), atol=1 / 255)
     np.testing.assert_allclose(rgb[1:3], [white, white], atol=1 / 255)
+    np.testing.assert_allclose(alpha, [render.REST_OPACITY, 1, 1, render.REST_OPACITY], atol=1 / 255)
 
 
 @pytest.mark.parametrize("look", ["water", "clay"])

@@ -24,6 +24,8 @@ log = logging.getLogger("sphshot")
 # zlib level for every PNG written. Lossless at any level; Pillow's default (6) took 77 ms for a
 # 960x540 frame of the example shot and 3 takes 38 ms for a file 14% larger (1: 31 ms, +24%).
 PNG_LEVEL = 3
+# the water look's spray droplets at rest: this opaque (in flight: fully)
+REST_OPACITY = 0.3
 
 
 # What a look sets, where the job leaves the key unset (render.look). Shading "ibl": VTK's PBR
@@ -301,15 +303,17 @@ class FrameRenderer:
                 kw = dict(color=look["spray_color"])
                 if "body" in look:      # water: white where it flies (aerated spray), its fluid's
                     # color half way to white where it has come to rest (a droplet left on a stone
-                    # is a bead, not foam)
+                    # is a bead, not foam), and there faint (REST_OPACITY: drawn unlit, the beads a
+                    # stone keeps read as a grid of lamps at full opacity)
                     fast = np.clip(np.linalg.norm(points["velocity"], axis=1) / (0.25 * spec.expected_max_speed()),
                                    0.0, 1.0)[:, None]
                     white = np.asarray(look["spray_color"])
                     own = np.array([f.color for f in spec.fluids], np.float64)[
                         np.clip(points["fluid"], 0, len(spec.fluids) - 1)]
                     rgb = (1 - fast) * 0.5 * (own + white) + fast * white
-                    cloud.point_data["rgb"] = np.round(255 * rgb).astype(np.uint8)
-                    kw = dict(scalars="rgb", rgb=True)
+                    alpha = REST_OPACITY + (1 - REST_OPACITY) * fast
+                    cloud.point_data["rgba"] = np.round(255 * np.column_stack([rgb, alpha])).astype(np.uint8)
+                    kw = dict(scalars="rgba", rgba=True)
                 if look["shading"] == "ibl":
                     # unlit, in their own color: lit sphere points with per-point colors, under
                     # the sky's image-based light, with supersampling on (render.ssaa, the
