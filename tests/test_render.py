@@ -386,6 +386,19 @@ def test_spray_is_white_where_it_flies_and_its_fluids_color_at_rest(tmp_path):
     np.testing.assert_allclose(alpha, [render.REST_OPACITY, 1, 1, render.REST_OPACITY], atol=1 / 255)
 
 
+def test_spray_droplets_are_fine():
+    """A spray point is the particle's diameter on screen, at least 2 px and at most 3 px per
+    1080 lines: the showcase's 4 mm particles at 1080p stay as they are (3.1 -> 3 px), the
+    two-fluid example's 8 mm ones at 960x540 (8.4 px, a cloud of hail over the impact) become 2."""
+    from pipeline.stages.render import spray_point_size
+
+    assert spray_point_size(3.1, 1080) == 3.0
+    assert spray_point_size(2.5, 1080) == 2.5
+    assert spray_point_size(8.4, 540) == 2.0
+    assert spray_point_size(1.0, 2160) == 2.0
+    assert spray_point_size(8.4, 2160) == 6.0
+
+
 @pytest.mark.parametrize("look", ["water", "clay"])
 def test_spray_shows_with_supersampling(tmp_path, look):
     """jobs/showcase.toml's camera, tank and colliders at 320x180 with render.ssaa on (the

@@ -26,6 +26,16 @@ log = logging.getLogger("sphshot")
 PNG_LEVEL = 3
 # the water look's spray droplets at rest: this opaque (in flight: fully)
 REST_OPACITY = 0.3
+# spray droplets are drawn at most this many pixels across per 1080 lines of the frame: a spray
+# particle stands for droplets finer than the sim's particles, and drawn at its own diameter the
+# two-fluid example's (r = 8 mm, 8 px at 960x540) flew up from the impact as a cloud of hail
+SPRAY_MOST_PX = 3.0
+
+
+def spray_point_size(diameter_px: float, lines: int) -> float:
+    """The spray's point size in pixels: the particle's diameter on screen, at least 2 px and at
+    most SPRAY_MOST_PX per 1080 lines."""
+    return max(2.0, min(diameter_px, SPRAY_MOST_PX * lines / 1080))
 
 
 # What a look sets, where the job leaves the key unset (render.look). Shading "ibl": VTK's PBR
@@ -296,8 +306,10 @@ class FrameRenderer:
         if spray.exists():
             points = read_points(spray)
             pts = points["position"]
-            if len(pts):            # fine droplets: a particle's diameter on screen, at least 2 px
-                size = max(2.0, 0.8 * self._pixels_per_metre() * 2 * spec.sim.particle_radius)
+            if len(pts):            # fine droplets: a particle's diameter on screen, 2 px at least
+                # and SPRAY_MOST_PX per 1080 lines at most
+                size = spray_point_size(0.8 * self._pixels_per_metre() * 2 * spec.sim.particle_radius,
+                                        spec.render.resolution[1])
                 cloud = pv.PolyData(pts)
                 cloud.point_data["motion"] = points["velocity"]
                 kw = dict(color=look["spray_color"])
