@@ -31,11 +31,15 @@ def small_dambreak(mesh: bool = False, solver: str = "dfsph"):
                                              name="g", colliders=colliders, sim={"solver": solver}))
 
 
-def run_on(backend: str, t_end: float, mesh: bool = False, solver: str = "dfsph"):
+def run_on(backend: str, t_end: float, mesh: bool = False, solver: str = "dfsph", spec=None):
+    """The snapshot after t_end of `spec` (default: small_dambreak) on `backend`. The solver
+    goes with this call, before the next ti.init: a device array freed after it is freed through
+    the new program (see solver.backend.init_taichi), which crashed lavapipe in 3 of 8 runs when
+    a test kept its last solver alive across it."""
     from solver.backend import init_taichi
     init_taichi(backend, 1 if backend == "cpu" else 0)
     from pipeline.stages.sim import fresh_solver
-    _params, s = fresh_solver(small_dambreak(mesh, solver))
+    _params, s = fresh_solver(spec or small_dambreak(mesh, solver))
     s.advance_to(t_end)
     return s.snapshot()
 
@@ -63,23 +67,12 @@ def test_device_two_fluids_match_cpu_early_on(device):
     bounds (a solve's sweep count may differ by one through round-off), and each fluid's mean
     density within 0.05 % of the CPU's, so the device sees the same contrast. Measured on
     lavapipe: positions within 6e-8 m, densities within 3e-6; it passed on an H200 (2026-11-28)."""
-    from pipeline.stages.sim import fresh_solver
-    from solver.backend import init_taichi
     job = tiny_spec(((0, 0, 0), (0.1, 0.3, 0.3)), ((0, 0, 0), (0.6, 0.4, 0.3)), name="g",
                     fluid={"rest_density": 1000.0})
     job["fluids"] = (job["fluids"][0], {"name": "oil", "rest_density": 800.0,
                                          "blocks": ({"min": (0.1, 0, 0), "max": (0.2, 0.3, 0.3)},)})
-
-    def run(backend: str) -> dict:
-        # the solver goes with this call, before the next ti.init: a device array freed after it
-        # is freed through the new program (see solver.backend.init_taichi), which crashed
-        # lavapipe in 3 of 8 runs when this loop kept the last solver alive across it
-        init_taichi(backend, 1 if backend == "cpu" else 0)
-        _params, s = fresh_solver(ShotSpec.model_validate(job))
-        s.advance_to(0.02)
-        return s.snapshot()
-
-    gpu, cpu = run(device), run("cpu")
+    spec = ShotSpec.model_validate(job)
+    gpu, cpu = run_on(device, 0.02, spec=spec), run_on("cpu", 0.02, spec=spec)
     np.testing.assert_array_equal(gpu["fluid"], cpu["fluid"])
     np.testing.assert_allclose(gpu["position"], cpu["position"], atol=5e-4)
     np.testing.assert_allclose(gpu["density"], cpu["density"], rtol=1e-2)
@@ -159,7 +152,7 @@ def test_device_implicit_viscosity_matches_cpu(device):
         s.advance_to(0.05)
         assert s.frame_report()["viscosity_steps"] > 0, backend
         decay[backend] = amplitude() / a0
-        del s, amplitude            # before the next ti.init (see test_device_two_fluids_match_cpu_early_on)
+        del s, amplitude            # before the next ti.init (see run_on)
     assert abs(decay[device] / decay["cpu"] - 1.0) < 0.01, decay
 
 
