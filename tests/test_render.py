@@ -332,6 +332,30 @@ def test_a_collider_has_its_form_under_the_water_look(tmp_path):
     assert (p90 - p10) / p50 > 0.3, (p10, p50, p90)
 
 
+def test_a_camera_near_the_domain_sees_the_front_of_what_it_looks_at(tmp_path):
+    """A camera 0.35 m from a 0.6 m tank, looking at a ball 0.54 m off: the pixel at the middle
+    of the frame is the ball's near side (its depth within 2 mm of 0.536 m). VTK put the near
+    plane at a thousandth of the far one, 0.56 m with the ground's far plane, so the ball's
+    front was cut away and its inside drawn (measured 0.696 m: the far side)."""
+    from pipeline.stages import render
+
+    spec = ShotSpec.model_validate(tiny_spec(
+        ((0, 0, 0), (0.1, 0.1, 0.1)), ((0, 0, 0), (0.6, 0.4, 0.4)), name="near",
+        shot={"frame_start": 1, "frame_end": 1, "output": str(tmp_path)},
+        colliders=({"type": "sphere", "center": (0.3, 0.1, 0.2), "radius": 0.08},),
+        render={"look": "clay", "resolution": (320, 180), "ssaa": False,
+                "camera": {"position": (0.55, 0.22, 0.75), "focal_point": (0.3, 0.1, 0.2), "fov": 35.0}}))
+    fr = render.FrameRenderer(spec)
+    try:
+        fr.place_camera(1)
+        fr.pl.screenshot(return_img=True)
+        depth = fr.pl.get_image_depth(fill_value=np.nan)
+    finally:
+        fr.close()
+    front = np.linalg.norm(np.subtract((0.55, 0.22, 0.75), (0.3, 0.1, 0.2))) - 0.08
+    assert abs(-depth[90, 160] - front) < 0.002, (-depth[90, 160], front)
+
+
 def test_a_frame_is_the_same_drawn_first_or_after_another(tmp_path):
     """A renderer is kept across frames (and a Dask worker draws every other frame): a frame
     must not depend on what was drawn before it. (Casting the contact shadow after the fluid

@@ -416,7 +416,20 @@ class FrameRenderer:
         pl.camera.focal_point = cam.focal_point
         pl.camera.up = cam.up
         pl.camera.view_angle = cam.fov
+        # VTK puts the near plane at a thousandth of the far one (its tolerance 0: its default),
+        # which the ground's far plane sets some hundreds of metres off: a camera nearer the
+        # domain than that (0.56 m for a 0.8 m tank) lost the fronts of what it looked at. The
+        # tolerance brings it in to half the camera's distance from the domain (a
+        # hundred-thousandth of the far plane at least), and holds for every later reset (a
+        # depth read makes one).
+        pl.renderer.SetNearClippingPlaneTolerance(0.0)
         pl.reset_camera_clipping_range()
+        near, far = pl.camera.clipping_range
+        lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
+        gap = float(np.linalg.norm(np.maximum(np.maximum(lo - cam.position, np.asarray(cam.position) - hi), 0.0)))
+        if 0.5 * gap < near:
+            pl.renderer.SetNearClippingPlaneTolerance(max(0.5 * gap / far, 1e-5))
+            pl.reset_camera_clipping_range()
 
     def _motion_blurred(self, meshes, samples: int, open_s: float) -> np.ndarray:
         """The mean of `samples` renders, each with the fluid moved along its velocity to an
