@@ -44,3 +44,33 @@ def ray_thickness(sdf: np.ndarray, index_min, cell: float, points: np.ndarray, d
         live, step = live[going], step[going]
         length[live] += step
     return np.where(np.isnan(entry), 0.0, np.minimum(length, max_length) - np.nan_to_num(entry))
+
+
+def water_above(sdf: np.ndarray, index_min, cell: float, points: np.ndarray) -> np.ndarray:
+    """Length of water straight above each point (along +y, to the top of the grid), however
+    many layers of it there are: the level set's occupancy clip(1/2 - phi / cell, 0, 1) (the
+    surface placed within its cell) summed up each column of samples from the top, and
+    interpolated trilinearly at the points, so that it changes smoothly as a point moves (no
+    steps at the cells); zero beyond the grid's columns
+    and above its top, and below its bottom the whole column. Only the columns over the points'
+    bounding box are summed."""
+    points = np.array(points, np.float64)
+    if len(points) == 0 or sdf.size == 0:
+        return np.zeros(len(points))
+    points[:, 1] = np.maximum(points[:, 1], cell * index_min[1])     # below the grid: its whole column
+    g = points / cell - np.asarray(index_min, np.float64)
+    lo = np.maximum(np.floor(g.min(axis=0)).astype(int) - 1, 0)
+    hi = np.minimum(np.floor(g.max(axis=0)).astype(int) + 2, np.array(sdf.shape) - 1)
+    if (hi < lo).any():
+        return np.zeros(len(points))
+    occupied = sdf[lo[0]:hi[0] + 1, lo[1]:, lo[2]:hi[2] + 1] * np.float32(-1.0 / cell)
+    occupied += np.float32(0.5)
+    np.clip(occupied, 0.0, 1.0, out=occupied)
+    # each column's total less what lies below and at sample j, then half of sample j: the
+    # water from j's own height up (in place: a fresh array of this size costs more than the sums)
+    above = np.cumsum(occupied, axis=1, dtype=np.float32)
+    np.subtract(above[:, -1:, :], above, out=above)
+    occupied *= np.float32(0.5)
+    above += occupied
+    above *= np.float32(cell)
+    return sample(above, np.asarray(index_min) + lo, cell, points, 0.0)

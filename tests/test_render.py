@@ -332,6 +332,68 @@ def test_a_collider_has_its_form_under_the_water_look(tmp_path):
     assert (p90 - p10) / p50 > 0.3, (p10, p50, p90)
 
 
+def test_a_collider_under_the_water_takes_the_light_that_reaches_it(tmp_path):
+    """Under the water look a collider's color per vertex is its own times the transmission of
+    the water straight above it (thickness.water_above; Beer-Lambert over the look's absorption
+    length, each channel as the water's color absorbs it). A grey ball half in a slab of water
+    0.1 m deep (0.8 absorption lengths at the ball's foot):
+    - its dry top, a cell and more over the waterline, keeps its color exactly;
+    - every wet vertex, a cell and more under it, takes its color times the transmission of its
+      depth under the waterline, to within 3 of 255 (the depth within a cell);
+    - the deepest third is darker than the shallowest third and bluer;
+    - the frame with no .vdb draws the ball in its own color (the colors per vertex off);
+    - the frame matches its golden: a ball whose foot turns dark blue-green under the water."""
+    import pyvista as pv
+
+    from pipeline.formats import write_mesh
+    from pipeline.stages import render
+    from surfacing.mesh import Mesh
+    from surfacing.reconstruct import vertex_normals
+
+    use_taichi_cpu()
+    grey = (0.6, 0.6, 0.6)
+    spec = ShotSpec.model_validate(tiny_spec(
+        ((0, 0, 0), (0.1, 0.1, 0.1)), ((0, 0, 0), (0.6, 0.4, 0.4)), name="waterline",
+        shot={"frame_start": 1, "frame_end": 3, "output": str(tmp_path)},
+        fluid={"name": "water", "color": (0.1, 0.375, 0.625)},
+        colliders=({"type": "sphere", "center": (0.3, 0.1, 0.2), "radius": 0.08, "color": grey},),
+        render={"look": "water", "resolution": (320, 180), "ssaa": False, "movie": False, "contact_sheet": False,
+                "camera": {"position": (0.55, 0.22, 0.75), "focal_point": (0.3, 0.08, 0.2), "fov": 35.0}}))
+    paths = ShotPaths.for_spec(spec)
+    slab = pv.Box(bounds=(0.1, 0.5, 0.0, 0.1, 0.05, 0.35), level=8, quads=False)
+    pts = np.asarray(slab.points, np.float32)
+    faces = np.asarray(slab.regular_faces, np.int32)
+    for f in (1, 2):
+        path = paths.surface_meshes(f)[None]
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_mesh(path, Mesh(pts, faces, vertex_normals(pts, faces), np.zeros_like(pts)), "ply")
+    with_level_set(paths, 2)                 # frame 1 has no .vdb
+    fr = render.FrameRenderer(spec)
+    try:
+        (actor, mesh, _col), = fr.solids
+        fr.render(1, paths)
+        assert not actor.mapper.GetScalarVisibility()
+        fr.render(2, paths)
+        assert actor.mapper.GetScalarVisibility()
+        lit = np.asarray(mesh.point_data["lit"], np.float64)
+        y = np.asarray(mesh.points)[:, 1]
+        cell = 0.005                                           # with_level_set's voxel
+        dry, wet = y > 0.1 + cell, y < 0.1 - cell
+        assert dry.sum() > 100 and wet.sum() > 100
+        np.testing.assert_array_equal(lit[dry], np.round(255 * np.array(grey))[None].repeat(dry.sum(), 0))
+        want = 255 * np.array(grey) * fr._transmission(spec.fluids[0], 0.1 - y[wet])
+        assert np.abs(lit[wet] - want).max() <= 3.0, np.abs(lit[wet] - want).max()
+        depth = 0.1 - y[wet]
+        deep, shallow = lit[wet][depth > np.percentile(depth, 67)], lit[wet][depth < np.percentile(depth, 33)]
+        assert deep.sum(axis=1).mean() < 0.8 * shallow.sum(axis=1).mean()
+        blue = lambda c: c[:, 2] / c.sum(axis=1)      # noqa: E731
+        assert blue(deep).mean() > blue(shallow).mean() + 0.05
+    finally:
+        fr.close()
+    render.run(spec, [2], paths, quiet())
+    compare("look_water_waterline_f2", paths.render_frame(2))
+
+
 def test_a_camera_near_the_domain_sees_the_front_of_what_it_looks_at(tmp_path):
     """A camera 0.35 m from a 0.6 m tank, looking at a ball 0.54 m off: the pixel at the middle
     of the frame is the ball's near side (its depth within 2 mm of 0.536 m). VTK put the near

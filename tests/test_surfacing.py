@@ -475,6 +475,35 @@ def test_water_along_a_view_ray_is_the_chord_of_the_sphere(sphere_mesh, vdb_file
     np.testing.assert_array_equal(air, 0.0)
 
 
+def test_water_above_a_point_is_the_balls_column(sphere_mesh, vdb_file):
+    """The render's light under the water (thickness.water_above): the water straight above a
+    point, on the .vdb's level set read back densely.
+    - On the vertical through the ball's centre, from under the ball to over it: the ball's
+      diameter below it, top - y inside it, none above it, within a cell (the lattice ball's
+      mesh is lumpy by up to 0.7 cells; the occupancy ramp adds nothing on average).
+    - It has no steps: 0.05 cells apart along that line, neighbours differ by at most 0.1 cell
+      more than the 0.05 cells the water itself changes by (the column sums looked up at the
+      nearest sample, not interpolated, would jump by a cell).
+    - Beside the ball (1.3 radii off its axis) and below the grid there: none; below the grid
+      under the ball: the whole diameter."""
+    from pipeline.formats import read_level_set
+    from surfacing.thickness import water_above
+
+    _field, mesh, _r = sphere_mesh
+    r = np.linalg.norm(mesh.points - CENTRE, axis=1).mean()
+    sdf, index_min, cell = read_level_set(vdb_file[0])
+    y = np.arange(-1.5 * r, 1.5 * r, 0.05 * cell)
+    line = CENTRE + np.outer(y, [0.0, 1.0, 0.0])
+    got = water_above(sdf, index_min, cell, line)
+    want = np.clip(r - y, 0.0, 2 * r)
+    assert np.abs(got - want).max() < cell, np.abs(got - want).max() / cell
+    assert np.abs(np.diff(got)).max() < 0.15 * cell, np.abs(np.diff(got)).max() / cell
+    beside = CENTRE + [1.3 * r, 0.0, 0.0] + np.outer(y, [0.0, 1.0, 0.0])
+    np.testing.assert_array_equal(water_above(sdf, index_min, cell, beside), 0.0)
+    far_below = water_above(sdf, index_min, cell, CENTRE[None] - [0.0, 10 * r, 0.0])
+    assert abs(far_below[0] - 2 * r) < cell
+
+
 def test_empty_frame_writes_empty_mesh_and_grids(tmp_path, caplog):
     import pyopenvdb as ov
 

@@ -30,6 +30,13 @@ REST_OPACITY = 0.3
 # particle stands for droplets finer than the sim's particles, and drawn at its own diameter the
 # two-fluid example's (r = 8 mm, 8 px at 960x540) flew up from the impact as a cloud of hail
 SPRAY_MOST_PX = 3.0
+# colliders under the water look are drawn in triangles at most this many surface cells long
+# (and at least a 400th of the domain's diagonal, against millions of them for a big collider
+# at a fine cell): their colors follow the water above them per vertex, and a waterline is
+# this sharp
+UNDER_WATER_EDGE = 4.0
+# _fluid_meshes' default: read the frame's level set itself
+READ = object()
 
 
 def spray_point_size(diameter_px: float, lines: int) -> float:
@@ -53,7 +60,9 @@ def spray_point_size(diameter_px: float, lines: int) -> float:
 # colliders are shaded: "phong", by the lamps alone with an ambient share for the sky (under
 # the sky's image-based light a collider took nearly the same light from every side and read
 # as a flat disc: the example's sphere, the boulder, the showcase's rock; Lambert's falloff
-# from the key light gives it its form), or "pbr" with the look's lights and sky.
+# from the key light gives it its form), or "pbr" with the look's lights and sky. Under the
+# water look's liquid a collider also takes only the light that comes through the liquid above
+# it (FrameRenderer._light_under_water).
 LOOKS = {
     "water": {"background": (0.66, 0.73, 0.80), "background_top": (0.52, 0.63, 0.77), "domain": False,
               "ground_color": (0.50, 0.52, 0.54), "ground_size": 30.0, "shading": "ibl", "opacity": 0.55,
@@ -137,13 +146,19 @@ class FrameRenderer:
             lo, hi = spec.domain.min, spec.domain.max
             box = pv.Box(bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])).outline()
             pl.add_mesh(box, color=(0.78, 0.8, 0.84), line_width=1.5, lighting=False)
-        colliders = collider_meshes(spec) if r.colliders else []
+        # in the water look the colliders' colors follow the water above them, per vertex
+        self.under_water = bool(look.get("absorption")) and look.get("solids") == "phong"
+        diagonal = float(np.linalg.norm(np.subtract(spec.domain.max, spec.domain.min)))
+        edge = max(UNDER_WATER_EDGE * spec.surface_cell_m, diagonal / 400) if self.under_water else None
+        colliders = collider_meshes(spec, edge) if r.colliders else []
         if look.get("solids") == "phong":
             solid = dict(ambient=0.35, diffuse=0.8, specular=0.08, specular_power=12.0)
         else:
             solid = dict(pbr=True, metallic=0.0, roughness=0.6)
+        self.solids = []
         for mesh, col in colliders:      # (a box keeps its hard edges)
             actor = pl.add_mesh(mesh, color=col.color, smooth_shading=col.type != "box", **solid)
+            self.solids.append((actor, mesh, col))
             # drawn a little nearer than it is: the water's mesh hugs a submerged collider, and
             # where the two coincide their depths fought, speckling the collider. (The mode is
             # VTK's one global setting, off by default; the offset is this mapper's own.)
@@ -244,7 +259,19 @@ class FrameRenderer:
         t = np.clip((dist - flat) / width, 0.0, 1.0)[:, None] ** 0.7
         return (1 - t) * np.asarray(self.look["ground_color"]) + t * np.asarray(self.look["background"])
 
-    def _fluid_meshes(self, frame: int, paths):
+    def _level_set(self, frame: int, paths):
+        """The frame's `surface` level set (formats.read_level_set) where the look draws the
+        water by its depth (look "absorption", a translucent material) and the frame has one;
+        else None."""
+        look = self.look
+        translucent = look.get("absorption") and look["opacity"] is not None and look["opacity"] < 1.0
+        if translucent and paths.vdb and paths.surface_vdb(frame).exists():     # (an opaque material: none)
+            return read_level_set(paths.surface_vdb(frame))
+        return None
+
+    def _fluid_meshes(self, frame: int, paths, level_set=READ):
+        """(mesh, add_mesh keywords) for the frame's fluid and spray; `level_set` as
+        _level_set gives it (READ: read it here)."""
         pv, spec = self.pv, self.spec
         out = []
         if spec.render.mode == "particles":
@@ -265,10 +292,8 @@ class FrameRenderer:
             return out
 
         look = self.look
-        level_set = None
-        translucent = look.get("absorption") and look["opacity"] is not None and look["opacity"] < 1.0
-        if translucent and paths.vdb and paths.surface_vdb(frame).exists():     # (an opaque material: none)
-            level_set = read_level_set(paths.surface_vdb(frame))
+        if level_set is READ:
+            level_set = self._level_set(frame, paths)
         for key, path in paths.surface_meshes(frame).items():
             m = read_mesh(path)
             if len(m.faces) == 0:
@@ -334,8 +359,67 @@ class FrameRenderer:
                     # lost its spray (the showcase's 19,000 droplets over the run-up at frame 24).
                     # At a few pixels across, a droplet's shading does not show.
                     kw["lighting"] = False
-                out.append((cloud, dict(render_points_as_spheres=True, point_size=size, ambient=0.5, **kw)))
+                else:
+                    kw["ambient"] = 0.5     # lit: a sphere's dark side is not black
+                out.append((cloud, dict(render_points_as_spheres=True, point_size=size, **kw)))
         return out
+
+    def _light_under_water(self, frame: int, paths, level_set) -> None:
+        """Colliders under the liquid get the light that reaches them through it: each vertex's
+        color times the transmission of the liquid straight above it (thickness.water_above,
+        Beer-Lambert as for the view), so that a submerged rock darkens and takes the water's
+        hue with depth, up to a waterline, instead of reading as a flat disc through the
+        surface. Each fluid absorbs as its own color does, over its own level set where the
+        frame has one per fluid (surface.per_fluid; else all of the liquid as the first fluid).
+        Without a level set (no .vdb, an opaque material) the colliders keep their color."""
+        if not self.solids:
+            return
+        if level_set is None or not self.under_water:
+            for actor, _mesh, _col in self.solids:
+                actor.mapper.SetScalarVisibility(False)
+            return
+        from surfacing.thickness import sample, water_above
+
+        layers = [(level_set, self.spec.fluids[0])]
+        if self.spec.surface.per_fluid and len(self.spec.fluids) > 1:
+            own = [(read_level_set(paths.surface_vdb(frame), f"surface_{f.name}"), f) for f in self.spec.fluids]
+            layers = [(ls, f) for ls, f in own if ls is not None]
+        for actor, mesh, col in self.solids:
+            points = np.asarray(mesh.points, np.float64)
+            normals = np.asarray(mesh.point_data["Normals"], np.float64)
+            normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+            facing_up = np.clip(normals[:, 1], 0.0, 1.0)[:, None]
+            light = np.ones((len(points), 3))
+            for (sdf, index_min, cell), fluid in layers:
+                through = self._transmission(fluid, water_above(sdf, index_min, cell, points))
+                # wet (the liquid a cell and a half off the face): all its light came through the
+                # liquid above; dry, only the share from above (a face turned up), under a sheet
+                # or a block of it overhead, and none of a face turned sideways or down
+                wet = sample(sdf, index_min, cell, points + 1.5 * cell * normals, 1.0)[:, None] < 0
+                light *= np.where(wet, through, 1.0 - facing_up * (1.0 - through))
+            rgb = np.asarray(col.color, np.float64) * light
+            mesh.point_data["lit"] = np.round(255 * np.clip(rgb, 0, 1)).astype(np.uint8)   # (the last frame's goes)
+            actor.mapper.SetScalarModeToUsePointFieldData()
+            actor.mapper.SelectColorArray("lit")
+            actor.mapper.SetColorModeToDirectScalars()
+            actor.mapper.SetScalarVisibility(True)
+
+    def _absorption_length(self) -> float:
+        """The water look's absorption length, m: its share ("absorption") of the domain's diagonal."""
+        lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
+        return self.look["absorption"] * float(np.linalg.norm(hi - lo))
+
+    def _transmission(self, fluid, depth: np.ndarray) -> np.ndarray:
+        """Per channel, the share of light left after `depth` m of `fluid`: its color^(depth /
+        transmission_depth) where it has one (as _transmitted); else exp(-a depth / L), L the
+        look's absorption length and a the channels' absorbances -ln(color) scaled to a mean of
+        1 (water's blue: the red goes first)."""
+        color = np.clip(np.asarray(fluid.color, np.float64), 1e-3, 1.0)
+        if fluid.transmission_depth is not None:
+            return color[None, :] ** (depth[:, None] / fluid.transmission_depth)
+        a = -np.log(color)
+        a = a / a.mean() if a.mean() > 0 else np.ones(3)
+        return np.exp(-a[None, :] * depth[:, None] / self._absorption_length())
 
     def _water_behind(self, frame: int, points, normals, level_set, length: float, lengths: float):
         """(front, water): which vertices face the camera, and for those the length of liquid
@@ -360,8 +444,7 @@ class FrameRenderer:
         (so that it still shows); zero on faces turned away (the front face carries the
         water's whole depth, and a blob no longer reads as a ball drawn twice)."""
         look = self.look
-        lo, hi = np.array(self.spec.domain.min), np.array(self.spec.domain.max)
-        depth = look["absorption"] * float(np.linalg.norm(hi - lo))
+        depth = self._absorption_length()
         # up to 3 lengths: 91 % of the way to opaque
         front, water = self._water_behind(frame, points, normals, level_set, depth, 3.0)
         # opacity at one absorption length is look["opacity"]: 1 - exp(-k) = opacity
@@ -399,7 +482,9 @@ class FrameRenderer:
         pl, r = self.pl, self.spec.render
         for actor in self.fluid_actors:
             pl.remove_actor(actor, render=False)
-        meshes = self._fluid_meshes(frame, paths)
+        level_set = self._level_set(frame, paths)
+        meshes = self._fluid_meshes(frame, paths, level_set)
+        self._light_under_water(frame, paths, level_set)
         if self.shadow is not None:   # before the meshes are added: cast after add_mesh, the
             # first frame a renderer drew came out up to 3 levels off the same frame drawn later
             self.shadow.cast([m for m, _kw in meshes])
@@ -564,7 +649,11 @@ def sky_faces(look: dict, n: int = SKY_TEXELS) -> list[np.ndarray]:
     return faces
 
 
-def collider_meshes(spec):
+def collider_meshes(spec, edge: float | None = None):
+    """(mesh, collider) for each collider drawn. With `edge` (m), each mesh is cut into
+    triangles no longer than that, its point normals computed first and carried onto the new
+    points (so that it shades as before): colors per vertex then follow the water above it
+    (FrameRenderer._light_under_water), a waterline included."""
     import pyvista as pv
 
     out = []
@@ -588,6 +677,12 @@ def collider_meshes(spec):
                 parts.append(pv.Cylinder(center=tuple(0.5 * (a + b)), direction=tuple(axis / length),
                                          radius=col.radius, height=length, resolution=48))
             m = parts[0].merge(parts[1:])
+        if edge is not None:
+            if col.type == "box":        # a normal per face
+                m = m.compute_normals(cell_normals=False, split_vertices=True)
+            elif col.type != "mesh":     # (a mesh's normals, split at its edges, are already there)
+                m = m.compute_normals(cell_normals=False)
+            m = m.triangulate().subdivide_adaptive(max_edge_len=edge)
         out.append((m, col))
     return out
 
