@@ -1,11 +1,14 @@
-"""How much water a view ray crosses behind a point of the surface.
+"""How much water lies along a line: behind a point of the surface along a view ray
+(ray_thickness), or straight above a point (water_above).
 
-From each point, along its ray away from the eye, to where the ray next leaves the water: the
+ray_thickness: from each point, along its ray away from the eye, to where the ray next leaves the water: the
 zero crossing of a level set (negative inside), found by sphere tracing. The level set's
 narrow band gives the distance to the surface near it; deeper inside, its background value is a
 lower bound, so every step is safe. Beer-Lambert absorption over this length is the water's
 depth tint: a thin sheet stays clear, a deep pool takes the water's color, and a stone under the
 surface is seen through exactly the water above it (the level set ends at colliders).
+water_above: every layer of water over a point, which the light that reaches a collider under
+the water has come through.
 """
 from __future__ import annotations
 
