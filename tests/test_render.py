@@ -458,7 +458,7 @@ def test_spray_is_white_where_it_flies_and_its_fluids_color_at_rest(tmp_path):
     write_points(paths.surface_spray(2), np.full((4, 3), 0.3, np.float32), velocity, 0.004, np.array([0, 0, 1, 1]))
     fr = render.FrameRenderer(spec)
     try:
-        clouds = [m for m, _kw in fr._fluid_meshes(2, paths) if m.n_faces == 0]
+        clouds = [m for m, _kw in fr._fluid_meshes(2, paths, fr._level_set(2, paths)) if m.n_faces == 0]
     finally:
         fr.close()
     assert len(clouds) == 1
@@ -537,7 +537,7 @@ def test_the_water_look_reads_the_depth_only_for_a_translucent_fluid(tmp_path, m
     monkeypatch.setattr(render, "read_level_set", lambda path: read.append(path))    # (None: no level set)
     fr = render.FrameRenderer(spec)
     try:
-        kw = [kw for m, kw in fr._fluid_meshes(2, paths) if m.n_faces > 0][0]
+        kw = [kw for m, kw in fr._fluid_meshes(2, paths, fr._level_set(2, paths)) if m.n_faces > 0][0]
     finally:
         fr.close()
     assert read == ([] if opacity == 1.0 else [paths.surface_vdb(2)])

@@ -35,8 +35,6 @@ SPRAY_MOST_PX = 3.0
 # at a fine cell): their colors follow the water above them per vertex, and a waterline is
 # this sharp
 UNDER_WATER_EDGE = 4.0
-# _fluid_meshes' default: read the frame's level set itself
-READ = object()
 
 
 def spray_point_size(diameter_px: float, lines: int) -> float:
@@ -269,9 +267,9 @@ class FrameRenderer:
             return read_level_set(paths.surface_vdb(frame))
         return None
 
-    def _fluid_meshes(self, frame: int, paths, level_set=READ):
+    def _fluid_meshes(self, frame: int, paths, level_set):
         """(mesh, add_mesh keywords) for the frame's fluid and spray; `level_set` as
-        _level_set gives it (READ: read it here)."""
+        _level_set gives it."""
         pv, spec = self.pv, self.spec
         out = []
         if spec.render.mode == "particles":
@@ -292,8 +290,6 @@ class FrameRenderer:
             return out
 
         look = self.look
-        if level_set is READ:
-            level_set = self._level_set(frame, paths)
         for key, path in paths.surface_meshes(frame).items():
             m = read_mesh(path)
             if len(m.faces) == 0:
