@@ -1,14 +1,15 @@
 """How much water lies along a line: behind a point of the surface along a view ray
 (ray_thickness), or straight above a point (water_above).
 
-ray_thickness: from each point, along its ray away from the eye, to where the ray next leaves the water: the
-zero crossing of a level set (negative inside), found by sphere tracing. The level set's
-narrow band gives the distance to the surface near it; deeper inside, its background value is a
-lower bound, so every step is safe. Beer-Lambert absorption over this length is the water's
+ray_thickness: from each point, along its ray away from the eye, to where the ray next leaves
+the water: the zero crossing of a level set (negative inside), found by sphere tracing. The level
+set's narrow band gives the distance to the surface near it; deeper inside, its background value
+is a lower bound, so every step is safe. Beer-Lambert absorption over this length is the water's
 depth tint: a thin sheet stays clear, a deep pool takes the water's color, and a stone under the
 surface is seen through exactly the water above it (the level set ends at colliders).
-water_above: every layer of water over a point, which the light that reaches a collider under
-the water has come through.
+
+water_above: every layer of water over a point (y is up, as in the render), which the light that
+reaches a collider under the water has come through.
 """
 from __future__ import annotations
 
@@ -54,9 +55,8 @@ def water_above(sdf: np.ndarray, index_min, cell: float, points: np.ndarray) -> 
     many layers of it there are: the level set's occupancy clip(1/2 - phi / cell, 0, 1) (the
     surface placed within its cell) summed up each column of samples from the top, and
     interpolated trilinearly at the points, so that it changes smoothly as a point moves (no
-    steps at the cells); zero beyond the grid's columns
-    and above its top, and below its bottom the whole column. Only the columns over the points'
-    bounding box are summed."""
+    steps at the cells); zero beyond the grid's columns and above its top, and below its bottom
+    the whole column. Only the columns over the points' bounding box are summed."""
     points = np.array(points, np.float64)
     if len(points) == 0 or sdf.size == 0:
         return np.zeros(len(points))
