@@ -10,6 +10,8 @@ Sections (issue 21's targets in brackets):
   profile   Taichi's kernel profiler over 20 DFSPH steps at 1M: the kernels that cost most
   profile_wcsph  the same over 20 WCSPH steps at 4M
   surface   the surfacer's splat and marching cubes at 500k and 4M particles [4M: 0.3 s]
+  host      a DFSPH step of 1,000 particles: ms a step (the host's launches and reads, which
+            keep the GPU idle), launches and reads a step
   stage     the sim stage through the CLI: jobs/dambreak.toml at 435k particles, 24 frames,
             with the GPU's utilisation sampled every 100 ms by nvidia-smi [busy >= 95%]
   showcase  (only when named) jobs/showcase.toml's sim stage for SHOWCASE_S seconds, a few
@@ -147,6 +149,46 @@ def profile_section(limit: float, solver: str = "dfsph", n: int = 1_000_000) -> 
     if lines:
         top = ", ".join(f"{l.split()[1]} {l.split()[2]}" for l in lines[:4])
         row(f"{solver.upper()} {n // 1_000_000}M: kernel ms per step (top 4)", f"{lines[-1].split()[2]} in all; {top}")
+
+
+HOST = r"""
+import collections, sys, time, taichi as ti
+sys.path[0] = sys.argv[1]
+ti.init(getattr(ti, sys.argv[2]), log_level=ti.WARN)
+import solver.backend as sb
+sb._current, sb._arch_name = (sys.argv[2], 0), sys.argv[2]
+sys.argv = sys.argv[:1]
+from bench.solver import scene
+from pipeline.stages.sim import fresh_solver
+_params, s = fresh_solver(scene(1000, 0.006 * (50_232 / 1000) ** (1 / 3), "dfsph", fluid="thin"))
+while s.steps < 10:                   # compile and warm up
+    s.advance_some(1e30)
+ti.sync()
+import taichi.lang.kernel_impl as K
+calls, call = collections.Counter(), K.Kernel.__call__
+def counted(self, *a, **k):
+    calls[self.func.__name__] += 1
+    return call(self, *a, **k)
+K.Kernel.__call__ = counted
+steps, t = s.steps, time.perf_counter()
+while s.steps < steps + 200:
+    s.advance_some(1e30)
+ti.sync()
+n = s.steps - steps
+reads = calls.pop("ndarray_to_ext_arr", 0)        # to_numpy's copy: a read of the device's values
+print(f"HOST {(time.perf_counter() - t) / n * 1e3:.2f} ms a step, {sum(calls.values()) / n:.1f} launches and "
+      f"{reads / n:.1f} reads a step ({s.n} particles)")
+"""
+
+
+def host_section(limit: float) -> None:
+    """A DFSPH step of 1,000 particles, whose kernels take next to nothing on a GPU: what its
+    launches and reads cost the host each step, over its steps 10-210 (`--dry` on the 2-core CPU:
+    4.7 ms, 16.6 launches and 5.6 reads a step). The sim stage's GPU is idle while the host works."""
+    rc, out = run([PY, "-c", HOST, str(ROOT), BACKEND], limit)
+    line = next((l for l in out.splitlines() if l.startswith("HOST")), None)
+    print(line or out[-1500:], flush=True)
+    row("DFSPH step of 1,000 particles: the host's part", line[5:] if line else f"failed (rc {rc})")
 
 
 SURFACE = r"""
@@ -317,7 +359,7 @@ def showcase_section(limit: float) -> None:
 
 SECTIONS = {"solver": (solver_section, 100), "dambreak": (dambreak_section, 45), "profile": (profile_section, 40),
             "profile_wcsph": (lambda limit: profile_section(limit, "wcsph", 4_000_000), 60),
-            "surface": (surface_section, 75), "stage": (stage_section, 150),
+            "surface": (surface_section, 75), "host": (host_section, 40), "stage": (stage_section, 150),
             # the same run as the first GPU measurement (WCSPH then), and DFSPH at its default
             # bound (which blew up at this resolution until the twelfth session: see RESULTS.md)
             "stage_wcsph": (lambda limit: stage_section(limit, "wcsph"), 100),
