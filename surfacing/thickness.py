@@ -66,14 +66,17 @@ def water_above(sdf: np.ndarray, index_min, cell: float, points: np.ndarray) -> 
     hi = np.minimum(np.floor(g.max(axis=0)).astype(int) + 2, np.array(sdf.shape) - 1)
     if (hi < lo).any():
         return np.zeros(len(points))
-    occupied = sdf[lo[0]:hi[0] + 1, lo[1]:, lo[2]:hi[2] + 1] * np.float32(-1.0 / cell)
-    occupied += np.float32(0.5)
-    np.clip(occupied, 0.0, 1.0, out=occupied)
-    # each column's total less what lies below and at sample j, then half of sample j: the
-    # water from j's own height up (in place: a fresh array of this size costs more than the sums)
-    above = np.cumsum(occupied, axis=1, dtype=np.float32)
-    np.subtract(above[:, -1:, :], above, out=above)
-    occupied *= np.float32(0.5)
-    above += occupied
+    block = sdf[lo[0]:hi[0] + 1, lo[1]:, lo[2]:hi[2] + 1]
+    above = np.empty(block.shape, np.float32)
+    for x0 in range(0, block.shape[0], 32):      # a slab at a time: one block-sized array in all
+        occupied = block[x0:x0 + 32] * np.float32(-1.0 / cell)
+        occupied += np.float32(0.5)
+        np.clip(occupied, 0.0, 1.0, out=occupied)
+        # each column's total less what lies below and at sample j, then half of sample j: the
+        # water from j's own height up
+        slab = np.cumsum(occupied, axis=1, dtype=np.float32, out=above[x0:x0 + 32])
+        np.subtract(slab[:, -1:, :], slab, out=slab)
+        occupied *= np.float32(0.5)
+        slab += occupied
     above *= np.float32(cell)
     return sample(above, np.asarray(index_min) + lo, cell, points, 0.0)
