@@ -481,6 +481,7 @@ class FrameRenderer:
         level_set = self._level_set(frame, paths)
         meshes = self._fluid_meshes(frame, paths, level_set)
         self._light_under_water(frame, paths, level_set)
+        del level_set       # a dense grid (450 MB for the showcase): gone before the render's own peak
         if self.shadow is not None:   # before the meshes are added: cast after add_mesh, the
             # first frame a renderer drew came out up to 3 levels off the same frame drawn later
             self.shadow.cast([m for m, _kw in meshes])
