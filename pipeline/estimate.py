@@ -7,13 +7,23 @@ Figures per unit, measured (bench/RESULTS.md, eleventh session):
   checkpoints: SIM_BYTES per particle in all (an upper bound for DFSPH now);
 - surfacing: about 36 grid nodes a particle at the default 0.75 r cell (18.0M nodes for 502,606
   particles) and about 26 bytes a node at the peak (color, velocity band, marching cubes'
-  arrays: 720 MB for the 500k frame with velocities, 250 MB of it Python and Taichi);
+  arrays: 720 MB for the 500k frame with velocities, 250 MB of it Python and Taichi). A splash
+  spreads the blocks (thirty-sixth session, jobs/showcase.toml's surface stage: 2.0 GB peak
+  resident at its splashiest frame 24, 1.31 GB at the calm frame 120, against 1.5 GB
+  estimated at 26 bytes a node): counted as 38, a few per cent over it;
 - a mesh collider's distance grid: OpenVDB voxelises the whole mesh, not only the part inside
   the domain: 12 bytes a voxel over the mesh's own box;
 - rendering (twenty-second session, the example's render stage alone, peak resident): 512, 573
   and 708 MB at 480x270, 960x540 and 1920x1080 with SSAA: VTK, PyVista and Mesa's llvmpipe
   about 490 MB over Python's own, and about 110 bytes an output pixel; counted as RENDER_BYTES
-  over BASE_BYTES and 120 a pixel. The example end to end in one process peaked at 738 MB
+  over BASE_BYTES and 120 a pixel. The frame's fluid mesh and, under the water look, its level
+  set read densely come on top (thirty-sixth session, jobs/showcase.toml at 1920x1080: 1.17,
+  1.79 and 1.20 GB peak resident at frames 12, 24 and 120, meshes of 0.99, 2.17 and 0.92 M
+  vertices; frame 24 under the clay look, no level set read, 1.54 GB): about 340 bytes a mesh
+  vertex, counted at PEAK_VERTICES vertices a cell^2 of the fluid blocks' starting surface (the
+  showcase's frame 24: 4.35; the example jobs' splashiest frames 2.1-3.3), and 4 bytes a cell
+  of the domain for the level set (its box, at most the domain's: 0.25 GB for that frame).
+  Until then the showcase's rendering was estimated at 0.67 GB. The example end to end in one process peaked at 738 MB
   (sim alone 215, surface alone 408: OpenVDB, scikit-image and the meshes' arrays about 110 MB
   over Python and Taichi, counted as SURFACE_BYTES);
 - what every run holds: Python, NumPy and the pipeline (BASE_BYTES), and Taichi once a sim or
@@ -44,7 +54,7 @@ from solver.lattice import Domain, site_count
 from .stages import STAGES
 
 SIM_BYTES = 1_200              # per particle: device arrays and host copies
-NODE_BYTES = 26                # per surfacing grid node, at the peak of one frame
+NODE_BYTES = 38                # per surfacing grid node, at the peak of one frame (module docstring)
 NODES_PER_CELL_VOLUME = 1.9    # blocks reach a support beyond the fluid: 36 nodes/particle at 0.75 r
 VOXEL_BYTES = 12               # per collider distance-grid voxel while OpenVDB builds it
 BASE_BYTES = 100 * 2 ** 20     # Python, NumPy and the pipeline loaded
@@ -52,6 +62,9 @@ TAICHI_BYTES = 200 * 2 ** 20   # Taichi loaded and initialised (the sim and surf
 RENDER_BYTES = 450 * 2 ** 20   # VTK, PyVista and Mesa loaded, while rendering
 SURFACE_BYTES = 120 * 2 ** 20  # OpenVDB and scikit-image loaded, while surfacing
 PIXEL_BYTES = 120              # per output pixel, while rendering
+RENDER_VERTEX_BYTES = 340      # per vertex of the frame's fluid mesh, while rendering
+PEAK_VERTICES = 4.4            # the splashiest frame's mesh vertices per cell^2 of the starting surface
+LEVEL_SET_BYTES = 4            # per cell of the domain: the frame's level set, read densely (water look)
 FRAME_BYTES, CHECKPOINT_BYTES = 44, 66        # on disk, per particle
 # a surface frame, per cell^2 of the fluid blocks' starting surface (module docstring)
 MESH_BYTES = {"ply": 150.0, "vtu": 150.0, "obj": 375.0}
@@ -121,8 +134,24 @@ def estimate(spec) -> Estimate:
     render_frame = w * h * (PNG_BYTES + (DEPTH_BYTES if spec.render.depth != "none" else 0.0))
     disk = (particles * (frames * FRAME_BYTES + checkpoints * CHECKPOINT_BYTES)
             + frames * (surface_frame + render_frame))
+    render = RENDER_BYTES + w * h * PIXEL_BYTES
+    if spec.render.mode == "surface":
+        render += PEAK_VERTICES * area / cell / cell * RENDER_VERTEX_BYTES
+        if _reads_level_set(spec):
+            volume = math.prod(hi - lo for lo, hi in zip(spec.domain.min, spec.domain.max))
+            render += LEVEL_SET_BYTES * volume / cell / cell / cell
     return Estimate(particles, sim=particles * SIM_BYTES, colliders=voxels * VOXEL_BYTES,
-                    surface=SURFACE_BYTES + nodes * NODE_BYTES, render=RENDER_BYTES + w * h * PIXEL_BYTES, disk=disk)
+                    surface=SURFACE_BYTES + nodes * NODE_BYTES, render=render, disk=disk)
+
+
+def _reads_level_set(spec) -> bool:
+    """Whether the render stage reads each frame's level set (FrameRenderer._level_set): a look
+    that draws the water by its depth, with a translucent material, and a `surface` grid."""
+    from .stages.render import look_of
+
+    look = look_of(spec.render)
+    return bool(look.get("absorption")) and look["opacity"] is not None and look["opacity"] < 1.0 \
+        and "surface" in spec.surface.grids
 
 
 def available_memory() -> float:
