@@ -394,6 +394,29 @@ def test_a_collider_under_the_water_takes_the_light_that_reaches_it(tmp_path):
     compare("look_water_waterline_f2", paths.render_frame(2))
 
 
+def test_colliders_under_the_water_look_are_cut_fine_within_a_budget(tmp_path):
+    """For their colors per vertex to follow the water, colliders under the water look are cut
+    into triangles of at most the edge asked for (the showcase's: 4 cells of 3 mm), their normals
+    carried onto the new points; a box 100 m across (a floor wider than the domain) stops at
+    UNDER_WATER_MOST_TRIANGLES, not tens of millions (VTK's adaptive subdivision, used first, took
+    150 s over it)."""
+    from pipeline.stages import render
+
+    spec = ShotSpec.model_validate(tiny_spec(
+        ((0, 0, 0), (0.1, 0.1, 0.1)), ((0, 0, 0), (0.6, 0.4, 0.4)), name="cut",
+        shot={"frame_start": 1, "frame_end": 1, "output": str(tmp_path)},
+        colliders=({"type": "box", "min": (0.45, 0.0, 0.1), "max": (0.55, 0.3, 0.2)},
+                   {"type": "box", "min": (-50.0, -1.0, -50.0), "max": (50.0, 0.0, 50.0)}),
+        render={"look": "water"}))
+    (pillar, _), (floor, _) = render.collider_meshes(spec, 0.012)
+    for m in (pillar, floor):
+        assert m.point_data.active_normals is not None and m.is_all_triangles
+    tri = np.asarray(pillar.points)[pillar.regular_faces]
+    assert np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max() <= 0.012
+    assert floor.n_cells <= render.UNDER_WATER_MOST_TRIANGLES
+    np.testing.assert_allclose(pillar.area, 2 * (0.1 * 0.3 + 0.3 * 0.1 + 0.1 * 0.1), rtol=1e-6)   # (float32 points)
+
+
 def test_a_camera_near_the_domain_sees_the_front_of_what_it_looks_at(tmp_path):
     """A camera 0.35 m from a 0.6 m tank, looking at a ball 0.54 m off: the pixel at the middle
     of the frame is the ball's near side (its depth within 2 mm of 0.536 m). VTK put the near

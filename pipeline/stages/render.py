@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import atexit
 import logging
+import math
 import os
 import threading
 from pathlib import Path
@@ -35,6 +36,9 @@ SPRAY_MOST_PX = 3.0
 # at a fine cell): their colors follow the water above them per vertex, and a waterline is
 # this sharp
 UNDER_WATER_EDGE = 4.0
+# ... and in at most this many triangles each (a box collider wider than the domain, a floor
+# 100 m across, would be cut into tens of millions)
+UNDER_WATER_MOST_TRIANGLES = 250_000
 
 
 def spray_point_size(diameter_px: float, lines: int) -> float:
@@ -679,7 +683,15 @@ def collider_meshes(spec, edge: float | None = None):
                 m = m.compute_normals(cell_normals=False, split_vertices=True)
             elif col.type != "mesh":     # (a mesh's normals, split at its edges, are already there)
                 m = m.compute_normals(cell_normals=False)
-            m = m.triangulate().subdivide_adaptive(max_edge_len=edge)
+            m = m.triangulate()
+            # each level halves every edge (4 triangles for 1; VTK's adaptive subdivision took
+            # 150 s to cut a 100 m floor into 2.5 M triangles)
+            tri = np.asarray(m.points)[m.regular_faces]
+            longest = float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max()) if len(tri) else 0.0
+            levels = math.ceil(math.log2(longest / edge)) if longest > edge else 0
+            budget = int(math.log(max(UNDER_WATER_MOST_TRIANGLES / max(m.n_cells, 1), 1.0), 4))
+            if min(levels, budget) > 0:
+                m = m.subdivide(min(levels, budget), subfilter="linear")
         out.append((m, col))
     return out
 
