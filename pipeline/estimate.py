@@ -147,11 +147,9 @@ def estimate(spec) -> Estimate:
 def _reads_level_set(spec) -> bool:
     """Whether the render stage reads each frame's level set (FrameRenderer._level_set): a look
     that draws the water by its depth, with a translucent material, and a `surface` grid."""
-    from .stages.render import look_of
+    from .stages.render import draws_depth, look_of
 
-    look = look_of(spec.render)
-    return bool(look.get("absorption")) and look["opacity"] is not None and look["opacity"] < 1.0 \
-        and "surface" in spec.surface.grids
+    return draws_depth(look_of(spec.render)) and "surface" in spec.surface.grids
 
 
 def available_memory() -> float:

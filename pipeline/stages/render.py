@@ -95,6 +95,18 @@ def look_of(render) -> dict:
     return look
 
 
+def draws_depth(look: dict) -> bool:
+    """Whether the look draws the liquid by its depth (an absorption length and a translucent
+    material), so that the render stage reads each frame's level set (FrameRenderer._level_set)."""
+    return bool(look.get("absorption")) and look["opacity"] is not None and look["opacity"] < 1.0
+
+
+def longest_edge(mesh) -> float:
+    """The longest edge of a triangle mesh's triangles (0 for none)."""
+    tri = np.asarray(mesh.points, np.float64)[mesh.regular_faces]
+    return float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max()) if len(tri) else 0.0
+
+
 def _offscreen_env() -> None:
     if not os.environ.get("DISPLAY"):
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
@@ -265,9 +277,7 @@ class FrameRenderer:
         """The frame's `surface` level set (formats.read_level_set) where the look draws the
         water by its depth (look "absorption", a translucent material) and the frame has one;
         else None."""
-        look = self.look
-        translucent = look.get("absorption") and look["opacity"] is not None and look["opacity"] < 1.0
-        if translucent and paths.vdb and paths.surface_vdb(frame).exists():     # (an opaque material: none)
+        if draws_depth(self.look) and paths.vdb and paths.surface_vdb(frame).exists():     # (an opaque material: none)
             return read_level_set(paths.surface_vdb(frame))
         return None
 
@@ -588,12 +598,11 @@ class ContactShadow:
                 continue            # points (spray) cast none
             if not m.is_all_triangles:
                 m = m.triangulate()     # a capsule's or a cylinder's polygon caps
-            tri = np.asarray(m.points, np.float64)[m.regular_faces]
-            if np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max() > 4 * self.texel:
+            if longest_edge(m) > 4 * self.texel:
                 # each triangle counts at its centre, a texel or two off under the blur (about 5
                 # texels): split large ones (a box collider's), not the fluid's
                 m = m.subdivide_adaptive(max_edge_len=self.texel)
-                tri = np.asarray(m.points, np.float64)[m.regular_faces]
+            tri = np.asarray(m.points, np.float64)[m.regular_faces]
             area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
             c = tri.mean(axis=1)
             hist, _, _ = np.histogram2d(
@@ -686,8 +695,7 @@ def collider_meshes(spec, edge: float | None = None):
             m = m.triangulate()
             # each level halves every edge (4 triangles for 1; VTK's adaptive subdivision took
             # 150 s to cut a 100 m floor into 2.5 M triangles)
-            tri = np.asarray(m.points)[m.regular_faces]
-            longest = float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max()) if len(tri) else 0.0
+            longest = longest_edge(m)
             levels = math.ceil(math.log2(longest / edge)) if longest > edge else 0
             budget = int(math.log(max(UNDER_WATER_MOST_TRIANGLES / max(m.n_cells, 1), 1.0), 4))
             if min(levels, budget) > 0:
