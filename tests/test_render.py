@@ -416,6 +416,28 @@ def test_colliders_under_the_water_look_are_cut_fine_within_a_budget(tmp_path):
     np.testing.assert_allclose(pillar.area, 2 * (0.1 * 0.3 + 0.3 * 0.1 + 0.1 * 0.1), rtol=1e-6)   # (float32 points)
 
 
+def test_a_floor_wider_than_the_contact_shadow_casts_it_whole(tmp_path):
+    """A box collider 100 m across under the domain (a floor) casts the contact shadow over the
+    whole layer, evenly, at what its top and bottom project on each texel: STILL (1 - exp(-1))
+    (two faces, each a texel's area) within 0.01. Only its part over the layer is split into
+    texel-sized triangles (split whole, it took minutes when the renderer was made; the part
+    beyond the layer falls outside the shadow anyway)."""
+    from pipeline.stages import render
+
+    spec = ShotSpec.model_validate(tiny_spec(
+        ((0, 0, 0), (0.1, 0.1, 0.1)), ((0, 0, 0), (0.6, 0.4, 0.4)), name="floor",
+        shot={"frame_start": 1, "frame_end": 1, "output": str(tmp_path)},
+        colliders=({"type": "box", "min": (-50.0, -1.0, -50.0), "max": (50.0, 0.0, 50.0)},),
+        render={"look": "clay", "resolution": (320, 180), "ssaa": False}))
+    fr = render.FrameRenderer(spec)
+    try:
+        inner = fr.shadow.still[20:-20, 20:-20]      # away from the blurred rim
+        want = render.ContactShadow.STILL * (1 - np.exp(-1.0))
+        assert np.abs(inner - want).max() < 0.01, (inner.min(), inner.max(), want)
+    finally:
+        fr.close()
+
+
 def test_a_camera_near_the_domain_sees_the_front_of_what_it_looks_at(tmp_path):
     """A camera 0.35 m from a 0.6 m tank, looking at a ball 0.54 m off: the pixel at the middle
     of the frame is the ball's near side (its depth within 2 mm of 0.536 m). VTK put the near

@@ -598,6 +598,15 @@ class ContactShadow:
                 continue            # points (spray) cast none
             if not m.is_all_triangles:
                 m = m.triangulate()     # a capsule's or a cylinder's polygon caps
+            x0, z0 = self.origin - self.texel
+            x1, z1 = self.origin + self.texel * np.array(self.shape)
+            if m.bounds[0] < x0 or m.bounds[1] > x1 or m.bounds[4] < z0 or m.bounds[5] > z1:
+                # the part over the layer only: a floor 100 m across, split to texels whole, took
+                # minutes when the renderer was made
+                m = m.clip_box((x0, x1, m.bounds[2] - 1.0, m.bounds[3] + 1.0, z0, z1), invert=False)
+                m = m.extract_surface(algorithm="dataset_surface").triangulate()
+                if m.n_faces == 0:
+                    continue
             if longest_edge(m) > 4 * self.texel:
                 # each triangle counts at its centre, a texel or two off under the blur (about 5
                 # texels): split large ones (a box collider's), not the fluid's
