@@ -279,7 +279,7 @@ def test_a_colored_liquid_takes_its_color_at_its_transmission_depth(tmp_path):
     fr = render.FrameRenderer(spec)
     try:
         level_set = read_level_set(paths.surface_vdb(2))
-        rgb, alpha = fr._transmitted(2, m.points, m.normals, level_set, honey, 0.05)
+        rgb, alpha = fr._transmitted(2, m.points, m.normals, level_set, spec.fluids[0])
         front, water = fr._water_behind(2, m.points, m.normals, level_set, 0.05, 4.0)
         g = float(np.mean(fr.look["ground_color"]))
         through = np.asarray(honey) ** (water[:, None] / 0.05)
@@ -370,7 +370,7 @@ def test_a_collider_under_the_water_takes_the_light_that_reaches_it(tmp_path):
     with_level_set(paths, 2)                 # frame 1 has no .vdb
     fr = render.FrameRenderer(spec)
     try:
-        (actor, mesh, _col), = fr.solids
+        (actor, mesh, _col, _normals), = fr.solids
         fr.render(1, paths)
         assert not actor.mapper.GetScalarVisibility()
         fr.render(2, paths)

@@ -169,10 +169,14 @@ class FrameRenderer:
             solid = dict(ambient=0.35, diffuse=0.8, specular=0.08, specular_power=12.0)
         else:
             solid = dict(pbr=True, metallic=0.0, roughness=0.6)
-        self.solids = []
+        self.solids = []                 # (actor, mesh, collider, its unit normals under water)
         for mesh, col in colliders:      # (a box keeps its hard edges)
             actor = pl.add_mesh(mesh, color=col.color, smooth_shading=col.type != "box", **solid)
-            self.solids.append((actor, mesh, col))
+            normals = None
+            if self.under_water:        # (the cut interpolates its normals: not of unit length)
+                normals = np.asarray(mesh.point_data["Normals"], np.float64)
+                normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+            self.solids.append((actor, mesh, col, normals))
             # drawn a little nearer than it is: the water's mesh hugs a submerged collider, and
             # where the two coincide their depths fought, speckling the collider. (The mode is
             # VTK's one global setting, off by default; the offset is this mapper's own.)
@@ -324,8 +328,7 @@ class FrameRenderer:
                 kw = {k: look[k] for k in ("specular", "specular_power", "ambient", "diffuse")}
             if level_set is not None:     # depth tint: each point as clear as the water behind it
                 if tinted:
-                    rgb, alpha = self._transmitted(frame, m.points, m.normals, level_set, color,
-                                                   fluid.transmission_depth)
+                    rgb, alpha = self._transmitted(frame, m.points, m.normals, level_set, fluid)
                 else:
                     alpha = self._water_alpha(frame, m.points, m.normals, level_set)
                     rgb = np.tile(np.asarray(color, np.float64), (len(alpha), 1))
@@ -385,7 +388,7 @@ class FrameRenderer:
         if not self.solids:
             return
         if level_set is None or not self.under_water:
-            for actor, _mesh, _col in self.solids:
+            for actor, *_ in self.solids:
                 actor.mapper.SetScalarVisibility(False)
             return
         from surfacing.thickness import sample, water_above
@@ -394,10 +397,8 @@ class FrameRenderer:
         if self.spec.surface.per_fluid and len(self.spec.fluids) > 1:
             own = [(read_level_set(paths.surface_vdb(frame), f"surface_{f.name}"), f) for f in self.spec.fluids]
             layers = [(ls, f) for ls, f in own if ls is not None]
-        for actor, mesh, col in self.solids:
+        for actor, mesh, col, normals in self.solids:
             points = np.asarray(mesh.points, np.float64)
-            normals = np.asarray(mesh.point_data["Normals"], np.float64)
-            normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
             facing_up = np.clip(normals[:, 1], 0.0, 1.0)[:, None]
             light = np.ones((len(points), 3))
             for (sdf, index_min, cell), fluid in layers:
@@ -464,22 +465,22 @@ class FrameRenderer:
         alpha[front] = least + (1 - least) * (1 - np.exp(-k * water / depth))
         return alpha
 
-    def _transmitted(self, frame: int, points, normals, level_set, color, depth: float):
+    def _transmitted(self, frame: int, points, normals, level_set, fluid):
         """(rgb, alpha) per vertex for a colored liquid (fluids.transmission_depth): light
         through a length d of it keeps T = color^(d / depth) of each channel (Beer-Lambert, the
-        color reached at `depth`). One alpha cannot filter the channels apart, so against the
+        color reached at `depth`: _transmission). One alpha cannot filter the channels apart, so against the
         look's ground (a gray g, what most of the frame shows through the liquid) alpha = 1 -
         min(T) and the vertex color c = g (T - (1 - alpha)) / alpha blend to g T: thin runs
         clear and golden, deep pools dark and saturated. Alpha is at least half the look's
         opacity, as for the water's thinnest sheet, so that a thin coat still shows its gloss
         (c is then clipped at 0); faces turned away are clear."""
-        front, water = self._water_behind(frame, points, normals, level_set, depth, 4.0)
+        front, water = self._water_behind(frame, points, normals, level_set, fluid.transmission_depth, 4.0)
         gray = float(np.mean(self.look["ground_color"]))
-        through = np.asarray(color, np.float64)[None, :] ** (water[:, None] / depth)
+        through = self._transmission(fluid, water)
         least = 0.5 * self.look["opacity"]
         alpha = np.zeros(len(points))
         alpha[front] = np.maximum(1.0 - through.min(axis=1), least)
-        rgb = np.tile(np.asarray(color, np.float64), (len(points), 1))
+        rgb = np.tile(np.asarray(fluid.color, np.float64), (len(points), 1))
         rgb[front] = gray * (through - (1.0 - alpha[front, None])) / alpha[front, None]
         return np.clip(rgb, 0.0, 1.0), alpha
 
