@@ -394,6 +394,54 @@ def test_a_collider_under_the_water_takes_the_light_that_reaches_it(tmp_path):
     compare("look_water_waterline_f2", paths.render_frame(2))
 
 
+def test_a_collider_under_liquid_overhead_takes_a_shadow_no_darker_than_the_floors(tmp_path):
+    """A grey ball 6 cm under a slab of water 14 cm thick (1.1 absorption lengths: through it
+    the red keeps 13 %), as under the two-fluid example's falling blocks: its dry top takes the
+    light lost in the slab, each channel as the water takes it (the red most, the blue least)
+    but no channel darker than the look's floor shadow under the liquid ("shadow", 0.45): the
+    red of the vertices facing straight up loses that share to within 2 of 255, and no vertex
+    loses more than that share of its facing up; a face turned down keeps its color. (Uncapped,
+    the ball's top came out a saturated navy beside the floor's soft gray shadow.)"""
+    import pyvista as pv
+
+    from pipeline.formats import write_mesh
+    from pipeline.stages import render
+    from surfacing.mesh import Mesh
+    from surfacing.reconstruct import vertex_normals
+
+    use_taichi_cpu()
+    grey = (0.6, 0.6, 0.6)
+    spec = ShotSpec.model_validate(tiny_spec(
+        ((0, 0, 0), (0.1, 0.1, 0.1)), ((0, 0, 0), (0.6, 0.4, 0.4)), name="overhead",
+        shot={"frame_start": 1, "frame_end": 2, "output": str(tmp_path)},
+        fluid={"name": "water", "color": (0.1, 0.375, 0.625)},
+        colliders=({"type": "sphere", "center": (0.3, 0.1, 0.2), "radius": 0.08, "color": grey},),
+        render={"look": "water", "resolution": (160, 90), "ssaa": False, "movie": False, "contact_sheet": False}))
+    paths = ShotPaths.for_spec(spec)
+    slab = pv.Box(bounds=(0.1, 0.5, 0.24, 0.38, 0.05, 0.35), level=8, quads=False)
+    pts, faces = np.asarray(slab.points, np.float32), np.asarray(slab.regular_faces, np.int32)
+    path = paths.surface_meshes(2)[None]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_mesh(path, Mesh(pts, faces, vertex_normals(pts, faces), np.zeros_like(pts)), "ply")
+    with_level_set(paths, 2)
+    fr = render.FrameRenderer(spec)
+    try:
+        (_actor, mesh, _col, normals), = fr.solids
+        fr.render(2, paths)
+        through = fr._transmission(spec.fluids[0], np.array([0.14]))[0]
+        assert through[0] < 0.2 and through[2] > through[1] > through[0]      # the slab takes the red most
+        lost = 255 * np.array(grey) - np.asarray(mesh.point_data["lit"], np.float64)
+        shadow = fr.look["shadow"]
+        top = normals[:, 1] > 0.98
+        assert top.sum() > 5 and (normals[:, 1] < 0).sum() > 100
+        np.testing.assert_allclose(lost[top, 0], 255 * 0.6 * shadow, atol=2.0)
+        up = np.clip(normals[:, 1], 0.0, 1.0)[:, None]
+        assert (lost <= 255 * 0.6 * shadow * up + 1.0).all()        # a face turned down loses nothing
+        assert (lost[top, 0] > lost[top, 1] + 5).all() and (lost[top, 1] > lost[top, 2] + 5).all()
+    finally:
+        fr.close()
+
+
 def test_colliders_under_the_water_look_are_cut_fine_within_a_budget(tmp_path):
     """For their colors per vertex to follow the water, colliders under the water look are cut
     into triangles of at most the edge asked for (the showcase's: 4 cells of 3 mm), their normals
