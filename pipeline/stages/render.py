@@ -476,10 +476,10 @@ class FrameRenderer:
     def _transmitted(self, frame: int, points, normals, level_set, fluid):
         """(rgb, alpha) per vertex for a colored liquid (fluids.transmission_depth): light
         through a length d of it keeps T = color^(d / depth) of each channel (Beer-Lambert, the
-        color reached at `depth`: _transmission). One alpha cannot filter the channels apart, so against the
-        look's ground (a gray g, what most of the frame shows through the liquid) alpha = 1 -
-        min(T) and the vertex color c = g (T - (1 - alpha)) / alpha blend to g T: thin runs
-        clear and golden, deep pools dark and saturated. Alpha is at least half the look's
+        color reached at `depth`: _transmission). One alpha cannot filter the channels apart,
+        so against the look's ground (a gray g, what most of the frame shows through the
+        liquid) alpha = 1 - min(T) and the vertex color c = g (T - (1 - alpha)) / alpha blend
+        to g T: thin runs clear and golden, deep pools dark and saturated. Alpha is at least half the look's
         opacity, as for the water's thinnest sheet, so that a thin coat still shows its gloss
         (c is then clipped at 0); faces turned away are clear."""
         front, water = self._water_behind(frame, points, normals, level_set, fluid.transmission_depth, 4.0)
