@@ -538,6 +538,12 @@ class ShotSpec(Strict):
                            f"give dynamic_viscosity in Pa s (water 0.001, honey about 10) and xsph for smoothing")
             if f.xsph and self.sim.solver == "wcsph":
                 out.append(f"fluids[{fi}].xsph: ignored by sim.solver = \"wcsph\" (dfsph only)")
+        r = self.render
+        if (not self.surface.per_fluid and len({f.color for f in self.fluids}) > 1 and r.mode == "surface"
+                and r.look != "clay" and r.material.color is None):
+            out.append(f"surface.per_fluid: false with {len(self.fluids)} fluids of different colors: one mesh "
+                       f"for all of them, drawn in fluids[0]'s color (\"{self.fluids[0].name}\"); true meshes "
+                       f"and draws each fluid in its own")
         return out
 
     def mesh_hashes(self) -> dict[int, str]:

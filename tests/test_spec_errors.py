@@ -262,6 +262,23 @@ def test_viscosity_defaults_and_xsph_is_dfsph_only(tmp_path, capsys):
     assert load_spec(job, ["fluids.0.dynamic_viscosity=10.0"]).fluid_viscosity(0) == (0.0, 10.0)
 
 
+def test_several_fluids_in_one_mesh_warn_that_it_takes_the_first_ones_color(tmp_path, capsys):
+    """Two fluids of different colors without surface.per_fluid share one mesh, which the render
+    draws in the first fluid's color: one warning line naming the key; none with per_fluid, with
+    the clay look (grey whatever the fluid), or with the fluids of one color."""
+    second = ('\n[[fluids]]\nname = "oil"\nrest_density = 850.0\ncolor = [0.85, 0.62, 0.15]\n'
+              '[[fluids.blocks]]\nmin = [0.5, 0.1, 0.1]\nmax = [0.7, 0.3, 0.3]\n')
+    job = tmp_path / "job.toml"
+    job.write_text(GOOD + second)
+    assert main(["validate", str(job)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"sphshot: warning: {job}: surface.per_fluid: false with 2 fluids"), err
+    assert '"water"' in err[0]
+    for quiet in ("surface.per_fluid=true", 'render.look="clay"', "fluids.1.color=" + str(list(load_spec(job).fluids[0].color))):
+        assert main(["validate", str(job), "--set", quiet]) == 0
+        assert capsys.readouterr().err.strip() == "", quiet
+
+
 def test_a_byte_order_mark_is_no_error(tmp_path, capsys):
     """Editors on Windows start UTF-8 files with a BOM; TOML allows none, we skip it."""
     job = tmp_path / "job.toml"
