@@ -332,6 +332,34 @@ def test_a_collider_has_its_form_under_the_water_look(tmp_path):
     assert (p90 - p10) / p50 > 0.3, (p10, p50, p90)
 
 
+def ball_and_slab(tmp_path, name: str, slab_y: tuple, frames: tuple, **render_keys):
+    """(spec, paths) of a shot under the water look: a grey ball of radius 0.08 m, its centre 0.1 m
+    up in a 0.6 x 0.4 x 0.4 m domain, and as each of `frames`' surface mesh a slab of water from
+    slab_y[0] to slab_y[1] high over most of the floor; frame 2 alone has its level set."""
+    import pyvista as pv
+
+    from pipeline.formats import write_mesh
+    from surfacing.mesh import Mesh
+    from surfacing.reconstruct import vertex_normals
+
+    use_taichi_cpu()
+    spec = ShotSpec.model_validate(tiny_spec(
+        ((0, 0, 0), (0.1, 0.1, 0.1)), ((0, 0, 0), (0.6, 0.4, 0.4)), name=name,
+        shot={"frame_start": 1, "frame_end": 3, "output": str(tmp_path)},
+        fluid={"name": "water", "color": (0.1, 0.375, 0.625)},
+        colliders=({"type": "sphere", "center": (0.3, 0.1, 0.2), "radius": 0.08, "color": (0.6, 0.6, 0.6)},),
+        render={"look": "water", "ssaa": False, "movie": False, "contact_sheet": False, **render_keys}))
+    paths = ShotPaths.for_spec(spec)
+    slab = pv.Box(bounds=(0.1, 0.5, slab_y[0], slab_y[1], 0.05, 0.35), level=8, quads=False)
+    pts, faces = np.asarray(slab.points, np.float32), np.asarray(slab.regular_faces, np.int32)
+    for f in frames:
+        path = paths.surface_meshes(f)[None]
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_mesh(path, Mesh(pts, faces, vertex_normals(pts, faces), np.zeros_like(pts)), "ply")
+    with_level_set(paths, 2)
+    return spec, paths
+
+
 def test_a_collider_under_the_water_takes_the_light_that_reaches_it(tmp_path):
     """Under the water look a collider's color per vertex is its own times the transmission of
     the water straight above it (thickness.water_above; Beer-Lambert over the look's absorption
@@ -343,31 +371,11 @@ def test_a_collider_under_the_water_takes_the_light_that_reaches_it(tmp_path):
     - the deepest third is darker than the shallowest third and bluer;
     - the frame with no .vdb draws the ball in its own color (the colors per vertex off);
     - the frame matches its golden: a ball whose foot turns dark blue-green under the water."""
-    import pyvista as pv
-
-    from pipeline.formats import write_mesh
     from pipeline.stages import render
-    from surfacing.mesh import Mesh
-    from surfacing.reconstruct import vertex_normals
 
-    use_taichi_cpu()
-    grey = (0.6, 0.6, 0.6)
-    spec = ShotSpec.model_validate(tiny_spec(
-        ((0, 0, 0), (0.1, 0.1, 0.1)), ((0, 0, 0), (0.6, 0.4, 0.4)), name="waterline",
-        shot={"frame_start": 1, "frame_end": 3, "output": str(tmp_path)},
-        fluid={"name": "water", "color": (0.1, 0.375, 0.625)},
-        colliders=({"type": "sphere", "center": (0.3, 0.1, 0.2), "radius": 0.08, "color": grey},),
-        render={"look": "water", "resolution": (320, 180), "ssaa": False, "movie": False, "contact_sheet": False,
-                "camera": {"position": (0.55, 0.22, 0.75), "focal_point": (0.3, 0.08, 0.2), "fov": 35.0}}))
-    paths = ShotPaths.for_spec(spec)
-    slab = pv.Box(bounds=(0.1, 0.5, 0.0, 0.1, 0.05, 0.35), level=8, quads=False)
-    pts = np.asarray(slab.points, np.float32)
-    faces = np.asarray(slab.regular_faces, np.int32)
-    for f in (1, 2):
-        path = paths.surface_meshes(f)[None]
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_mesh(path, Mesh(pts, faces, vertex_normals(pts, faces), np.zeros_like(pts)), "ply")
-    with_level_set(paths, 2)                 # frame 1 has no .vdb
+    spec, paths = ball_and_slab(tmp_path, "waterline", (0.0, 0.1), (1, 2), resolution=(320, 180),
+                                camera={"position": (0.55, 0.22, 0.75), "focal_point": (0.3, 0.08, 0.2), "fov": 35.0})
+    grey = spec.colliders[0].color
     fr = render.FrameRenderer(spec)
     try:
         (actor, mesh, _col, _normals), = fr.solids
@@ -402,28 +410,10 @@ def test_a_collider_under_liquid_overhead_takes_a_shadow_no_darker_than_the_floo
     red of the vertices facing straight up loses that share to within 2 of 255, and no vertex
     loses more than that share of its facing up; a face turned down keeps its color. (Uncapped,
     the ball's top came out a saturated navy beside the floor's soft gray shadow.)"""
-    import pyvista as pv
-
-    from pipeline.formats import write_mesh
     from pipeline.stages import render
-    from surfacing.mesh import Mesh
-    from surfacing.reconstruct import vertex_normals
 
-    use_taichi_cpu()
-    grey = (0.6, 0.6, 0.6)
-    spec = ShotSpec.model_validate(tiny_spec(
-        ((0, 0, 0), (0.1, 0.1, 0.1)), ((0, 0, 0), (0.6, 0.4, 0.4)), name="overhead",
-        shot={"frame_start": 1, "frame_end": 2, "output": str(tmp_path)},
-        fluid={"name": "water", "color": (0.1, 0.375, 0.625)},
-        colliders=({"type": "sphere", "center": (0.3, 0.1, 0.2), "radius": 0.08, "color": grey},),
-        render={"look": "water", "resolution": (160, 90), "ssaa": False, "movie": False, "contact_sheet": False}))
-    paths = ShotPaths.for_spec(spec)
-    slab = pv.Box(bounds=(0.1, 0.5, 0.24, 0.38, 0.05, 0.35), level=8, quads=False)
-    pts, faces = np.asarray(slab.points, np.float32), np.asarray(slab.regular_faces, np.int32)
-    path = paths.surface_meshes(2)[None]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_mesh(path, Mesh(pts, faces, vertex_normals(pts, faces), np.zeros_like(pts)), "ply")
-    with_level_set(paths, 2)
+    spec, paths = ball_and_slab(tmp_path, "overhead", (0.24, 0.38), (2,), resolution=(160, 90))
+    grey = spec.colliders[0].color
     fr = render.FrameRenderer(spec)
     try:
         (_actor, mesh, _col, normals), = fr.solids
