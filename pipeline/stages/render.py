@@ -160,8 +160,9 @@ class FrameRenderer:
             lo, hi = spec.domain.min, spec.domain.max
             box = pv.Box(bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])).outline()
             pl.add_mesh(box, color=(0.78, 0.8, 0.84), line_width=1.5, lighting=False)
-        # in the water look the colliders' colors follow the water above them, per vertex
-        self.under_water = bool(look.get("absorption")) and look.get("solids") == "phong"
+        # in the water look the colliders' colors follow the water above them, per vertex (not
+        # with an opaque material: no level set is read, and they need not be cut)
+        self.under_water = draws_depth(look) and look.get("solids") == "phong"
         diagonal = float(np.linalg.norm(np.subtract(spec.domain.max, spec.domain.min)))
         edge = max(UNDER_WATER_EDGE * spec.surface_cell_m, diagonal / 400) if self.under_water else None
         colliders = collider_meshes(spec, edge) if r.colliders else []
