@@ -77,7 +77,7 @@ def run(cmd: list[str], limit: float, env=None) -> tuple[int, str]:
 
 def radius_for(n: int) -> float:
     # bench/solver.py scales the block's spacing counts to n; its radius only sets the metres
-    return 0.006 * (50_232 / n) ** (1 / 3)
+    return 0.006 * (50_102 / n) ** (1 / 3)
 
 
 def solver_section(limit: float) -> None:
@@ -123,7 +123,7 @@ sb._current, sb._arch_name = (backend, 0), backend
 sys.argv = sys.argv[:1]
 from bench.solver import scene
 from pipeline.stages.sim import fresh_solver
-_params, s = fresh_solver(scene(n, 0.006 * (50_232 / n) ** (1 / 3), solver, fluid="thin"))
+_params, s = fresh_solver(scene(n, 0.006 * (50_102 / n) ** (1 / 3), solver, fluid="thin"))
 steps = s.steps
 while s.steps < steps + 5:           # compile and warm up the path the stage runs
     s.advance_some(1e30)
@@ -160,7 +160,7 @@ sb._current, sb._arch_name = (sys.argv[2], 0), sys.argv[2]
 sys.argv = sys.argv[:1]
 from bench.solver import scene
 from pipeline.stages.sim import fresh_solver
-_params, s = fresh_solver(scene(1000, 0.006 * (50_232 / 1000) ** (1 / 3), "dfsph", fluid="thin"))
+_params, s = fresh_solver(scene(1000, 0.006 * (50_102 / 1000) ** (1 / 3), "dfsph", fluid="thin"))
 while s.steps < 10:                   # compile and warm up
     s.advance_some(1e30)
 ti.sync()

@@ -33,7 +33,19 @@ ANCHOR = ROOT.parent / "shared" / "anchors" / "solver" / "bench_splishsplash.sh"
 
 def scene(particles: int, radius: float, solver: str = "dfsph", cfl: float = 0.8,
           max_density_error: float = 0.0005, fluid: str = "anchor"):
-    """The anchor tank, with a water block of about `particles` particles at the left end.
+    """The anchor tank, with a water block of about `particles` particles where the anchor's is.
+
+    The anchor's block (dambreak_dfsph.json's FluidBlocks, 0.012 ... 0.516 x 0.012 ... 0.336 x
+    -0.288 ... 0.288 m) is filled with 41 x 26 x 47 particles whose centres lie from 24 mm off the
+    back wall and the floor and 24 mm off each side (measured: bench/RESULTS.md, thirty-eighth
+    session): the water they stand for fills 0.018 ... 0.510 x 0.018 ... 0.330 x -0.282 ... 0.282,
+    18 mm clear of the back wall, the floor and both sides, and falls that far as it collapses.
+    Ours is that water, its spacing counts scaled to the requested count (the block's size in
+    metres follows the radius) and capped to the tank less the same margins. (Until the
+    thirty-eighth session it was 42 x 26 x 46 spacings against the back wall, the floor and the
+    -z side, 48 mm clear of the +z side: another dam break, whose side gap sent a sheet up the +z
+    wall and along its foot 8-10 % faster than the anchor's fastest particles, and our CFL took
+    9 % more steps for it.) The tank's walls hold nothing: friction 0, as the anchor's.
 
     DFSPH runs with the anchor's settings (../shared/anchors/solver/dambreak_dfsph.json):
     mean density error 0.05 %, divergence error 0.1 %, its CFL step (cflFactor 1: dt =
@@ -49,22 +61,22 @@ def scene(particles: int, radius: float, solver: str = "dfsph", cfl: float = 0.8
     from pipeline.spec import ShotSpec
 
     d = 2 * radius
-    # 42 x 26 x 46 spacings (50,232 particles) is closest to the anchor's 50,102; scale the
-    # spacing counts uniformly to the requested count (the block's size in metres follows the
-    # radius), capped to the tank. (Scaling by the radius as well, as before, made the GPU
-    # script's "1M" and "4M" runs 6M and 25M particles.)
-    n0 = 42 * 26 * 46
+    # The anchor's 41 x 26 x 47 spacings (50,102 particles), scaled uniformly to the requested
+    # count (scaling them by the radius as well, as it once did, made the GPU
+    # script's "1M" and "4M" runs 6M and 25M particles)
+    n0 = 41 * 26 * 47
     s = (particles / n0) ** (1 / 3)
-    nx, ny, nz = (max(1, round(k * s)) for k in (42, 26, 46))
-    ext = (min(nx * d, 1.5), min(ny * d, 0.6), min(nz * d, 0.59))
+    nx, ny, nz = (max(1, round(k * s)) for k in (41, 26, 47))
+    gap = 0.018
+    ext = (min(nx * d, 1.6 - 2 * gap), min(ny * d, 0.67 - 2 * gap), min(nz * d, 0.6 - 2 * gap))
     return ShotSpec.model_validate({
         "shot": {"name": "bench", "frame_end": 13, "fps": 24.0},
         "sim": {"particle_radius": radius, "solver": solver,
                 **({"cfl": cfl, "max_density_error": max_density_error, "max_dt": 0.005} if solver == "dfsph" else {})},
-        "domain": {"min": (0.0, 0.0, -0.3), "max": (1.6, 0.67, 0.3), "no_slip": False},
+        "domain": {"min": (0.0, 0.0, -0.3), "max": (1.6, 0.67, 0.3), "no_slip": False, "friction": 0.0},
         "fluids": ({"name": "water", **({"dynamic_viscosity": 10.0} if solver == "dfsph" and fluid == "anchor"
                                         else {"viscosity": 1.0}),
-                    "blocks": ({"min": (0.0, 0.0, -0.3), "max": (ext[0], ext[1], -0.3 + ext[2])},)},)})
+                    "blocks": ({"min": (gap, gap, -0.5 * ext[2]), "max": (gap + ext[0], gap + ext[1], 0.5 * ext[2])},)},)})
 
 
 def child(args) -> None:

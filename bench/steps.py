@@ -1,0 +1,153 @@
+#!/usr/bin/env python3
+"""Where the steps go: sphshot's DFSPH and SPlisHSPlasH's on the anchor dam break, window by window.
+
+Both take their step from a CFL on the fastest particle (bench/solver.py's scene: the anchor's
+cflFactor 1, 5 ms cap), so a solver whose few fastest particles run faster than the other's takes
+more steps for the same simulated time, whatever a step costs. This prints, for each window of
+simulated time, each side's steps, mean step, its fastest particle's speed (sphshot: the CFL's
+|v + a dt| over particles with a neighbour; SPlisHSPlasH: |v| after the step), the 99.9th
+percentile speed and where the fastest particle was. Not a timing: SPlisHSPlasH's velocities
+are read every step through pysplishsplash, one particle at a time.
+
+    .venv/bin/python bench/steps.py                    # 0.5 s, windows of 0.05 s
+    .venv/bin/python bench/steps.py --stop-at 0.2 --window 0.02
+    .venv/bin/python bench/steps.py --only sphshot
+
+The anchor side runs in the anchor's venv (../shared/anchors/solver/bench_splishsplash.sh makes it,
+${ANCHOR_VENV:-/tmp/anchorvenv}); figures and what they showed: bench/RESULTS.md, thirty-eighth
+session.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+ANCHORS = ROOT.parent / "shared" / "anchors" / "solver"
+GL_DISPATCH = "/usr/lib/x86_64-linux-gnu/libGLdispatch.so.0"     # the anchor script's libGL workaround
+
+
+def ours(stop_at: float) -> np.ndarray:
+    """(t, dt, CFL speed, 99.9th percentile speed, x, y, z of the fastest) after every step."""
+    sys.path[:0] = [str(ROOT)]
+    from solver.backend import init_taichi
+
+    init_taichi("cpu", 0)
+    spec_of = importlib.util.spec_from_file_location("bench_solver", ROOT / "bench" / "solver.py")
+    bench_solver = importlib.util.module_from_spec(spec_of)
+    spec_of.loader.exec_module(bench_solver)
+    from pipeline.stages.sim import fresh_solver
+
+    _params, s = fresh_solver(bench_solver.scene(50_000, 0.006))
+    rows = []
+    while s.time < stop_at:
+        dt = s.step(stop_at)
+        v = s.velocity.to_numpy()
+        speed = np.linalg.norm(v, axis=1)
+        k = int(np.argmax(speed))
+        rows.append((s.time, dt, s.vmax, np.percentile(speed, 99.9), *s.position.to_numpy()[k]))
+    return np.array(rows)
+
+
+ANCHOR_CHILD = r"""
+import json, os, sys
+import numpy as np
+import pysplishsplash as sph
+scene, stop_at, out = sys.argv[1], float(sys.argv[2]), sys.argv[3]
+with open(scene) as f:
+    doc = json.load(f)
+doc["Configuration"]["stopAt"] = 1e-6          # init and one step; the loop below runs the rest
+with open(scene, "w") as f:
+    json.dump(doc, f)
+base = sph.Exec.SimulatorBase()
+base.init(sceneFile=scene, useGui=False, initialPause=False, useCache=False,
+          outputDir=os.path.join(os.path.dirname(scene), "out"), stopAt=1e-6)
+base.initSimulation()
+base.runSimulation()
+sim, tm = sph.Simulation.getCurrent(), sph.TimeManager.getCurrent()
+base.setValueFloat(base.STOP_AT, stop_at)
+fm = sim.getFluidModel(0)
+rows = []
+while base.timeStepNoGUI():
+    n = fm.numActiveParticles()
+    v = np.array([fm.getVelocity(i) for i in range(n)])
+    speed = np.linalg.norm(v, axis=1)
+    k = int(np.argmax(speed))
+    rows.append([tm.getTime(), tm.getTimeStepSize(), float(speed[k]), float(np.percentile(speed, 99.9)),
+                 *map(float, fm.getPosition(k))])
+np.save(out, np.array(rows))
+base.cleanup()
+"""
+
+
+def anchor(stop_at: float) -> np.ndarray | None:
+    """The same rows for SPlisHSPlasH's DFSPH on the anchor's scene, or None without the anchor."""
+    venv = Path(os.environ.get("ANCHOR_VENV", Path(tempfile.gettempdir()) / "anchorvenv"))
+    if not (ANCHORS / "dambreak_dfsph.json").exists():
+        print(f"# no anchor at {ANCHORS}; SPlisHSPlasH skipped")
+        return None
+    if not (venv / "bin" / "python").exists():      # the anchor's own script makes its venv
+        subprocess.run(["bash", str(ANCHORS / "bench_splishsplash.sh"), "--solvers", "dfsph", "--stop-at", "0.001"],
+                       check=True, capture_output=True)
+    work = Path(tempfile.mkdtemp(prefix="sphshot_steps_"))
+    try:
+        for name in ("dambreak_dfsph.json", "tank_box.obj"):
+            shutil.copy(ANCHORS / name, work)
+        env = dict(os.environ)
+        probe = subprocess.run([str(venv / "bin" / "python"), "-c", "import pysplishsplash"], capture_output=True)
+        if probe.returncode != 0 and Path(GL_DISPATCH).exists():
+            env["LD_PRELOAD"] = GL_DISPATCH
+        out = work / "rows.npy"
+        subprocess.run([str(venv / "bin" / "python"), "-c", ANCHOR_CHILD, str(work / "dambreak_dfsph.json"),
+                        str(stop_at), str(out)], check=True, capture_output=True, env=env, cwd=work)
+        return np.load(out)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def window_table(name: str, rows: np.ndarray, stop_at: float, window: float) -> list[str]:
+    lines = [f"{name}: {len(rows)} steps to {rows[-1, 0]:.3f} s"]
+    for t0 in np.arange(0.0, stop_at - 1e-9, window):
+        m = (rows[:, 0] > t0 + 1e-9) & (rows[:, 0] <= t0 + window + 1e-9)
+        if not m.any():
+            continue
+        w = rows[m]
+        k = int(np.argmax(w[:, 2]))
+        lines.append(f"  {t0:.2f}-{t0 + window:.2f} s: {m.sum():3d} steps, dt {1e3 * w[:, 1].mean():.2f} ms, "
+                     f"fastest {w[:, 2].max():.2f} m/s at ({w[k, 4]:.3f}, {w[k, 5]:.3f}, {w[k, 6]:+.3f}), "
+                     f"99.9th percentile {w[:, 3].max():.2f} m/s")
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--stop-at", type=float, default=0.5, help="simulated seconds (default 0.5)")
+    ap.add_argument("--window", type=float, default=0.05, help="window of simulated time, s (default 0.05)")
+    ap.add_argument("--only", choices=("sphshot", "anchor"), help="one side only")
+    args = ap.parse_args()
+    print(f"# command: {' '.join([Path(sys.executable).name, *sys.argv])}")
+    sides = []
+    if args.only != "anchor":
+        sides.append(("sphshot DFSPH", ours(args.stop_at)))
+    if args.only != "sphshot":
+        rows = anchor(args.stop_at)
+        if rows is not None:
+            sides.append(("SPlisHSPlasH DFSPH", rows))
+    for name, rows in sides:
+        print("\n".join(window_table(name, rows, args.stop_at, args.window)))
+    if len(sides) == 2:
+        print(f"STEPS sphshot / SPlisHSPlasH: x{len(sides[0][1]) / len(sides[1][1]):.3f}")
+    print("RESULT " + json.dumps({name: len(rows) for name, rows in sides}))
+
+
+if __name__ == "__main__":
+    main()
