@@ -632,6 +632,79 @@ def test_the_walls_images_are_listed_as_the_mirror_makes_them():
     assert (listed_by_walls[1:] > 0).all(), f"images listed near 1, 2, 3 walls: {listed_by_walls[1:]}"
 
 
+def sheet_into_an_edge():
+    """(params, solver): a water sheet four particles thick (r = 6 mm) sliding at 1.6 m/s, at 45
+    degrees, into the vertical edge of a frictionless box's two walls; the anchor's fluid
+    (bench/solver.py's 10 Pa s, free slip)."""
+    r = 0.006
+    _spec, params, s = dfsph({
+        "shot": {"name": "t"},
+        "sim": {"particle_radius": r, "cfl": 0.8, "max_density_error": 0.0005, "max_dt": 0.005},
+        "domain": {"min": (0, 0, 0), "max": (0.3, 0.5, 0.3), "no_slip": False, "friction": 0.0},
+        "fluids": ({"name": "water", "dynamic_viscosity": 10.0,
+                    "blocks": ({"min": (0.04, 0, 0.04), "max": (0.16, 8 * r, 0.16),
+                                "velocity": (-1.6 / math.sqrt(2), 0, -1.6 / math.sqrt(2))},)},)})
+    return params, s
+
+
+def test_the_factor_is_a_sweeps_exact_diagonal_where_the_neighbourhood_is_sparse():
+    """A sweep's kappa_i = alpha_i e_i / dt^k removes particle i's error e_i only if 1 / alpha_i is
+    how i's rate answers its own kappa. Measured for each particle with a wall near and fewer than
+    MIN_DIVERGENCE_NEIGHBOURS (the sheet's, as it meets the edge): kappa = 1 at i alone, applied by
+    the sweeps' own apply pass from rest, and i's rate summed here in numpy over its neighbours and
+    the images the density pass listed (velocities mirrored). Bound 1e-3: float32 round-off
+    (measured within 2e-7). The lumped factor, each image a neighbour of its own, read up to twice
+    the response there (bench/RESULTS.md, thirty-eighth session)."""
+    from solver.dfsph import MIN_DIVERGENCE_NEIGHBOURS, k_apply_kappa
+    import taichi as ti
+
+    params, s = sheet_into_an_edge()
+    s.advance_to(0.032)
+    s.update_lists()
+    s.compute_density()
+    x, nc, span = s.position.to_numpy(), s.near_count.to_numpy(), s.img_span.to_numpy()
+    near, gfac, (lx, ly) = s.near.to_numpy(), s.gfac.to_numpy(), s.lay
+    img, img_g, wall_grad = s.img.to_numpy(), s.img_g.to_numpy(), s.wall_grad.to_numpy()
+    alpha = s.alpha.to_numpy()
+
+    def rate(i, v):
+        slots = i * lx + np.arange(nc[i]) * ly
+        js = near[slots]
+        out = v[i] @ wall_grad[i] + np.sum((v[i] - v[js]) * gfac[slots, None] * (x[i] - x[js]))
+        for e, g in zip(img[span[i, 0]:span[i, 0] + span[i, 1]], img_g[span[i, 0]:span[i, 0] + span[i, 1]]):
+            mirrored = v[e >> 3] * np.where([(e & 7) >> a & 1 for a in range(3)], -1.0, 1.0)
+            out += (v[i] - mirrored) @ g
+        return out
+
+    sparse = np.flatnonzero((nc < MIN_DIVERGENCE_NEIGHBOURS) & (span[:, 1] > 0))
+    assert len(sparse) >= 20, f"only {len(sparse)} sparse particles near the walls"
+    kappa, scratch = ti.ndarray(ti.f32, s.n), ti.ndarray(ti.f32, s.n)
+    dt = 1e-3
+    for i in sparse[:: max(1, len(sparse) // 40)]:
+        unit = np.zeros(s.n, np.float32)
+        unit[i] = 1.0
+        kappa.from_numpy(unit)
+        s.velocity.from_numpy(np.zeros((s.n, 3), np.float32))
+        k_apply_kappa(s.position, s.velocity, s.fluid, s.near, s.near_count, s.gfac, s.lay, *s.images, kappa,
+                      scratch, s.wall_grad, dt, s.ftab)
+        answer = -rate(i, s.velocity.to_numpy().astype(np.float64)) / dt
+        assert abs(answer * alpha[i] - 1.0) < 1e-3, \
+            f"particle {i} ({nc[i]} neighbours, {span[i, 1]} images): 1 / alpha {1 / alpha[i]:.4g}, answer {answer:.4g}"
+
+
+def test_a_sheet_sliding_into_an_edge_is_not_thrown_up_it():
+    """The sheet above meets the edge at 1.6 m/s; over 0.12 s its fastest particle reaches 6.1
+    m/s up the edge (measured; SPlisHSPlasH's DFSPH on the same sheet: 3.3). With the lumped
+    factor at its sparse particles it reached 9.4 m/s, and the CFL took 91 steps where it now
+    takes 65 (SPlisHSPlasH 64). Bound 7.5 m/s."""
+    _params, s = sheet_into_an_edge()
+    fastest = 0.0
+    while s.time < 0.12:
+        s.step(0.12)
+        fastest = max(fastest, float(np.linalg.norm(s.velocity.to_numpy(), axis=1).max()))
+    assert fastest < 7.5, f"the fastest particle reached {fastest:.2f} m/s"
+
+
 def akinci_box_accelerations(r: float):
     """(positions, accelerations), by particle id, of the fill lattice in a closed box's lower
     half, no gravity, Akinci's tension at the example's gamma 0.15, before any step (and in
