@@ -131,13 +131,14 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
                      ghost_g: F4, visc_t: F2, wall_visc: F1, ctype: I1, cprm: F2, sdf: F1, surface_g: ti.f32,
                      surface_d: ti.f32, kern: ti.template()):
     """Number density delta_i = sum_j W_ij + sum_b W_ib, density m_i delta_i and the factor
-    alpha_i, and the particle's target number density delta0 (1 - D_i) (SURFACE_FROM: D_i from
-    how one-sided its neighbourhood is, reaching surface_d at the lattice top's one-sidedness
-    surface_g); copies the Verlet entries now within h into `near`, as the WCSPH density pass
-    (without a skin `near` is `verlet` itself, filtered in place: DFSPHSolver._grow_neighbours),
-    and beside each entry the pair's dW/dr / r (`gfac`), so that the solves' sweeps, at these
-    same positions, take grad W_ij = gfac x_ij without a square root or the kernel's pieces.
-    wall_visc[i]: the no-slip weight 2 eta_i S_i / (delta_i delta0) of the walls near i
+    alpha_i (a sweep's exact diagonal where the neighbourhood is sparse: module docstring), and
+    the particle's target number density delta0 (1 - D_i) (SURFACE_FROM: D_i from how one-sided
+    its neighbourhood is, reaching surface_d at the lattice top's one-sidedness surface_g);
+    copies the Verlet entries now within h into `near`, as the WCSPH density pass (without a skin
+    `near` is `verlet` itself, filtered in place: DFSPHSolver._grow_neighbours), and beside each
+    entry the pair's dW/dr / r (`gfac`), so that the solves' sweeps, at these same positions,
+    take grad W_ij = gfac x_ij without a square root or the kernel's pieces. wall_visc[i]: the
+    no-slip weight 2 eta_i S_i / (delta_i delta0) of the walls near i
     (boundaries.wall_viscosity). `prm`: the constants (types.consts_of, box_of).
 
     The walls' images j' of i and its neighbours within h are listed for the sweeps as the
@@ -153,8 +154,7 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
         xi = position[i]
         s = K.w_r2(kern, 0.0, h)
         grad_sum = vec3(0.0)
-        sq = 0.0            # sum_j |grad W_ij|^2 / m_j over the neighbours and, lumped, their images
-        sq_exact = 0.0      # the same with each neighbour's images mirrored back onto it (the factor)
+        sq = 0.0
         base = i * lay.x
         k = 0
         for m in range(verlet_count[i]):
@@ -174,33 +174,25 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
                 grad_sum += g
                 sq += g.norm_sqr() / ftab[fluid[j], F_MASS]
         near_count[i] = k
-        sq_exact = sq
         # the box walls: images of i and its neighbours mirrored in the walls within h (and in
         # both or all three at an edge or corner), as fluid with their velocities mirrored
         s_m = 0.0
-        own = vec3(0.0)         # the gradients of i's own images
         mask, planes = mirror_walls(xi, box, h)
         start, q = 0, 0
         if mask != 0:
             reserve = 0
-            for m in range(-1, k):
-                j = i if m < 0 else near[base + m * lay.y]
-                for sub in range(1, 8):
-                    if (sub & mask) == sub:
+            for sub in range(1, 8):
+                if (sub & mask) == sub:
+                    for m in range(-1, k):
+                        j = i if m < 0 else near[base + m * lay.y]
                         r2 = (xi - reflect(position[j], sub, planes)).norm_sqr()
                         reserve += ti.select((r2 < h * h) & (r2 > 1e-18), 1, 0)
             start = ti.atomic_add(img_top[0], reserve)
             end = ti.min(start + reserve, cap)
-            for m in range(-1, k):
-                j = i if m < 0 else near[base + m * lay.y]
-                # j's gradient and its images' mirrored back onto it: how a push on j moves i's
-                # rate (the factor below)
-                g_j = vec3(0.0)
-                if m >= 0:
-                    g_j = gfac[base + m * lay.y] * (xi - position[j])
-                back = g_j
-                for sub in range(1, 8):
-                    if (sub & mask) == sub:
+            for sub in range(1, 8):
+                if (sub & mask) == sub:
+                    for m in range(-1, k):
+                        j = i if m < 0 else near[base + m * lay.y]
                         rv = xi - reflect(position[j], sub, planes)
                         r2 = rv.norm_sqr()
                         if (r2 < h * h) & (r2 > 1e-18):
@@ -209,15 +201,35 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
                             g = K.dw(kern, r, h) / r * rv
                             grad_sum += g
                             sq += g.norm_sqr() / ftab[fluid[j], F_MASS]
-                            own += ti.select(m < 0, 1.0, 0.0) * g
-                            back += reflect_velocity(g, sub)
                             if start + q < end:
                                 img[start + q] = image_entry(j, sub)
                                 img_g[start + q] = g
                                 q += 1
-                if m >= 0:
-                    sq_exact += (back.norm_sqr() - g_j.norm_sqr()) / ftab[fluid[j], F_MASS]
         img_span[i] = ivec2(start, q)
+        # where the neighbourhood is sparse, the factor is a sweep's exact diagonal (module
+        # docstring): i's own images, and each neighbour's gradient with its images' mirrored back
+        sparse = (k < MIN_DIVERGENCE_NEIGHBOURS) & (mask != 0)
+        own = vec3(0.0)
+        sq_exact = 0.0
+        if sparse:
+            for m in range(-1, k):
+                j = i if m < 0 else near[base + m * lay.y]
+                back = vec3(0.0)
+                if m >= 0:
+                    back = gfac[base + m * lay.y] * (xi - position[j])
+                for sub in range(1, 8):
+                    if (sub & mask) == sub:
+                        rv = xi - reflect(position[j], sub, planes)
+                        r2 = rv.norm_sqr()
+                        if (r2 < h * h) & (r2 > 1e-18):
+                            r = ti.sqrt(r2)
+                            g = K.dw(kern, r, h) / r * rv
+                            if m < 0:
+                                own += g
+                            else:
+                                back += reflect_velocity(g, sub)
+                if m >= 0:
+                    sq_exact += back.norm_sqr() / ftab[fluid[j], F_MASS]
         # colliders from their tables, added: the images cover the space beyond the walls that
         # the fluid mirrors into, which never lies beyond a collider's face too
         wd, wg = boundary_sums(xi, c, box, ghost_t, ghost_g, ctype, cprm, sdf, False)
@@ -228,7 +240,7 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
         wall_grad[i] = wg
         grad = grad_sum + wg
         beta = grad.norm_sqr() / mi + sq
-        if k < MIN_DIVERGENCE_NEIGHBOURS:
+        if sparse:
             beta = (grad + own).norm_sqr() / mi + sq_exact
         g = grad.norm() * h / c.lattice
         d = surface_d * ti.max(g - SURFACE_FROM, 0.0) / (surface_g - SURFACE_FROM)
