@@ -62,8 +62,8 @@ def scene(particles: int, radius: float, solver: str = "dfsph", cfl: float = 0.8
 
     d = 2 * radius
     # The anchor's 41 x 26 x 47 spacings (50,102 particles), scaled uniformly to the requested
-    # count (scaling them by the radius as well, as it once did, made the GPU
-    # script's "1M" and "4M" runs 6M and 25M particles)
+    # count (scaling them by the radius as well, as it once did, made the GPU script's "1M" and
+    # "4M" runs 6M and 25M particles)
     n0 = 41 * 26 * 47
     s = (particles / n0) ** (1 / 3)
     nx, ny, nz = (max(1, round(k * s)) for k in (41, 26, 47))
