@@ -31,6 +31,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[0] = str(ROOT)
+from bench.solver import radius_for  # noqa: E402 - the bench scene's radius for a count
+
 PY = sys.executable
 BACKEND, SCALE = "cuda", 1.0          # --dry: cpu, particle counts / 200 (to check the script here)
 ROWS: list[tuple[str, str, str]] = []          # (what, figure, target)
@@ -75,11 +77,6 @@ def run(cmd: list[str], limit: float, env=None) -> tuple[int, str]:
         return 124, out
 
 
-def radius_for(n: int) -> float:
-    # bench/solver.py scales the block's spacing counts to n; its radius only sets the metres
-    return 0.006 * (50_102 / n) ** (1 / 3)
-
-
 def solver_section(limit: float) -> None:
     for solver in ("wcsph", "dfsph"):
         for n in (int(1_000_000 * SCALE), int(4_000_000 * SCALE)):
@@ -121,9 +118,9 @@ ti.init(getattr(ti, backend), kernel_profiler=True, log_level=ti.WARN)
 import solver.backend as sb
 sb._current, sb._arch_name = (backend, 0), backend
 sys.argv = sys.argv[:1]
-from bench.solver import scene
+from bench.solver import radius_for, scene
 from pipeline.stages.sim import fresh_solver
-_params, s = fresh_solver(scene(n, 0.006 * (50_102 / n) ** (1 / 3), solver, fluid="thin"))
+_params, s = fresh_solver(scene(n, radius_for(n), solver, fluid="thin"))
 steps = s.steps
 while s.steps < steps + 5:           # compile and warm up the path the stage runs
     s.advance_some(1e30)
@@ -158,9 +155,9 @@ ti.init(getattr(ti, sys.argv[2]), log_level=ti.WARN)
 import solver.backend as sb
 sb._current, sb._arch_name = (sys.argv[2], 0), sys.argv[2]
 sys.argv = sys.argv[:1]
-from bench.solver import scene
+from bench.solver import radius_for, scene
 from pipeline.stages.sim import fresh_solver
-_params, s = fresh_solver(scene(1000, 0.006 * (50_102 / 1000) ** (1 / 3), "dfsph", fluid="thin"))
+_params, s = fresh_solver(scene(1000, radius_for(1000), "dfsph", fluid="thin"))
 while s.steps < 10:                   # compile and warm up
     s.advance_some(1e30)
 ti.sync()

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import resource
@@ -29,6 +30,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[0] = str(ROOT)   # this file is bench/solver.py: keep it from shadowing the solver package
 ANCHOR = ROOT.parent / "shared" / "anchors" / "solver" / "bench_splishsplash.sh"
+
+
+# The anchor's water: 41 x 26 x 47 spacings of 12 mm (50,102 particles; scene's docstring)
+ANCHOR_SPACINGS = (41, 26, 47)
+
+
+def radius_for(particles: int) -> float:
+    """The particle radius at which scene's block for `particles` is the anchor's in metres."""
+    return 0.006 * (math.prod(ANCHOR_SPACINGS) / particles) ** (1 / 3)
 
 
 def scene(particles: int, radius: float, solver: str = "dfsph", cfl: float = 0.8,
@@ -61,12 +71,10 @@ def scene(particles: int, radius: float, solver: str = "dfsph", cfl: float = 0.8
     from pipeline.spec import ShotSpec
 
     d = 2 * radius
-    # The anchor's 41 x 26 x 47 spacings (50,102 particles), scaled uniformly to the requested
-    # count (scaling them by the radius as well, as it once did, made the GPU script's "1M" and
-    # "4M" runs 6M and 25M particles)
-    n0 = 41 * 26 * 47
-    s = (particles / n0) ** (1 / 3)
-    nx, ny, nz = (max(1, round(k * s)) for k in (41, 26, 47))
+    # The anchor's spacings, scaled uniformly to the requested count (scaling them by the radius
+    # as well, as it once did, made the GPU script's "1M" and "4M" runs 6M and 25M particles)
+    s = (particles / math.prod(ANCHOR_SPACINGS)) ** (1 / 3)
+    nx, ny, nz = (max(1, round(k * s)) for k in ANCHOR_SPACINGS)
     gap = 0.018
     ext = (min(nx * d, 1.6 - 2 * gap), min(ny * d, 0.67 - 2 * gap), min(nz * d, 0.6 - 2 * gap))
     return ShotSpec.model_validate({
