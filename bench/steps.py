@@ -4,10 +4,10 @@
 Both take their step from a CFL on the fastest particle (bench/solver.py's scene: the anchor's
 cflFactor 1, 5 ms cap), so a solver whose few fastest particles run faster than the other's takes
 more steps for the same simulated time, whatever a step costs. This prints, for each window of
-simulated time, each side's steps, mean step, its fastest particle's speed (sphshot: the CFL's
-|v + a dt| over particles with a neighbour; SPlisHSPlasH: |v| after the step), the 99.9th
-percentile speed and where the fastest particle was. Not a timing: SPlisHSPlasH's velocities
-are read every step through pysplishsplash, one particle at a time.
+simulated time, each side's steps, mean step, its fastest particle's |v| after a step and where
+it was (sphshot also its CFL speed, |v + a dt| over particles with a neighbour), and the 99.9th
+percentile speed. Not a timing: SPlisHSPlasH's velocities are read every step through
+pysplishsplash, one particle at a time.
 
     .venv/bin/python bench/steps.py                    # 0.5 s, windows of 0.05 s
     .venv/bin/python bench/steps.py --stop-at 0.2 --window 0.02
@@ -37,7 +37,8 @@ GL_DISPATCH = "/usr/lib/x86_64-linux-gnu/libGLdispatch.so.0"     # the anchor sc
 
 
 def ours(stop_at: float) -> np.ndarray:
-    """(t, dt, CFL speed, 99.9th percentile speed, x, y, z of the fastest) after every step."""
+    """(t, dt, fastest |v|, 99.9th percentile speed, x, y, z of the fastest, CFL speed) after every
+    step."""
     sys.path[:0] = [str(ROOT)]
     from solver.backend import init_taichi
 
@@ -54,7 +55,7 @@ def ours(stop_at: float) -> np.ndarray:
         v = s.velocity.to_numpy()
         speed = np.linalg.norm(v, axis=1)
         k = int(np.argmax(speed))
-        rows.append((s.time, dt, s.vmax, np.percentile(speed, 99.9), *s.position.to_numpy()[k]))
+        rows.append((s.time, dt, speed[k], np.percentile(speed, 99.9), *s.position.to_numpy()[k], s.vmax))
     return np.array(rows)
 
 
@@ -124,7 +125,8 @@ def window_table(name: str, rows: np.ndarray, stop_at: float, window: float) -> 
         k = int(np.argmax(w[:, 2]))
         lines.append(f"  {t0:.2f}-{t0 + window:.2f} s: {m.sum():3d} steps, dt {1e3 * w[:, 1].mean():.2f} ms, "
                      f"fastest {w[:, 2].max():.2f} m/s at ({w[k, 4]:.3f}, {w[k, 5]:.3f}, {w[k, 6]:+.3f}), "
-                     f"99.9th percentile {w[:, 3].max():.2f} m/s")
+                     f"99.9th percentile {w[:, 3].max():.2f} m/s"
+                     + (f", CFL speed {w[:, 7].max():.2f} m/s" if w.shape[1] > 7 else ""))
     return lines
 
 
