@@ -205,10 +205,21 @@ class SPHSolver:
         k_neighbours(self.ref, self.verlet, self.verlet_count, self.nb_cap, self.lay, self.h + self.skin, self.start,
                      self.count, self.origin, self.inv_cell, self.dims, self.ctl, clock.OVERFLOW)
 
+    def read(self, a, k: int | None = None):
+        """The values of a small array (a controller, a count), or its element k, synced. On the
+        CPU element by element: to_numpy launches a copy kernel and costs the host about 115 us
+        however short the array, an element 8 (measured on the 2-core CPU; bench/RESULTS.md,
+        thirty-ninth session), and a DFSPH step reads four or five such arrays."""
+        if k is not None:
+            return a[k] if self.on_cpu else a.to_numpy()[k]
+        if self.on_cpu:
+            return [a[i] for i in range(a.shape[0])]
+        return a.to_numpy().tolist()
+
     def _overflowed(self, longest: float | None = None) -> bool:
         """If the last lists overflowed, make room for 1.25x the longest and say so."""
         if longest is None:
-            longest = float(self.ctl.to_numpy()[clock.OVERFLOW])
+            longest = float(self.read(self.ctl, clock.OVERFLOW))
         if longest <= 0:
             return False
         self._grow_neighbours(int(1.25 * longest) + 8)
@@ -222,7 +233,7 @@ class SPHSolver:
             if moved is None:         # not known from the last batch of steps: look
                 self.moved.fill(0)
                 k_moved_beyond(self.position, self.ref, 0.5 * self.skin, self.moved)
-                moved = int(self.moved.to_numpy()[0]) != 0
+                moved = int(self.read(self.moved, 0)) != 0
             if not moved:
                 return
         from_position, self._lists_from_ref = not self._lists_from_ref, False
