@@ -397,19 +397,21 @@ def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, target: 
              gfac: F1, lay: ivec2, img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3, kappa: F1, total: F1,
              scratch: F1, residual: F1, partial: F1, groups: D1, dt: ti.f32, warm: ti.f32, prm: F1, ftab: F2, go: D1,
              bound: ti.f64, norm: ti.f64, min_iterations: ti.i32, max_iterations: ti.i32, solve: ti.template(),
-             first: ti.template()):
-    """first: the warm start (total *= warm, applied into `scratch`); else, unless done, one
-    sweep as Bender & Koschier 2017's Algorithms 2 and 3 (and SPlisHSPlasH) take it: this kappa
-    and the mean error it removes, then kappa applied (total += kappa), one more iteration. Done
-    once that error is within `bound` after min_iterations sweeps, or after max_iterations: the
-    last kappa is applied, not computed to be thrown away."""
-    if ti.static(first):
+             warm_start: ti.template(), count: ti.template()):
+    """warm_start: first the warm start (total *= warm, applied into `scratch`, the controller
+    reset); then `count` sweeps, each unless done as Bender & Koschier 2017's Algorithms 2 and 3
+    (and SPlisHSPlasH) take it: this kappa and the mean error it removes, then kappa applied
+    (total += kappa), one more iteration. Done once that error is within `bound` after
+    min_iterations sweeps, or after max_iterations: the last kappa is applied, not computed to be
+    thrown away. (The sweeps of one launch are its passes in a row: a launch costs the 2-core CPU's
+    host about 0.25 ms however little its passes do.)"""
+    if ti.static(warm_start):
         go[DONE], go[ITER], go[ERR] = 0.0, 0.0, 0.0
         for i in total:
             total[i] *= warm
         apply_pass(position, velocity, fluid, near, near_count, gfac, lay, img, img_g, img_span, total, scratch,
                    wall_grad, dt, ftab, go)
-    else:
+    for _sweep in ti.static(range(count)):
         if ti.static(solve == DIVERGENCE):
             divergence_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, img,
                                   img_g, img_span, alpha, wall_grad, kappa, residual, dt, go)
@@ -697,7 +699,7 @@ class DFSPHSolver(SPHSolver):
         the list outgrew its pool, the pool grows by a quarter over what was asked and the pass
         runs again (once)."""
         self._density_factor()
-        need = int(self.img_top.to_numpy()[0])
+        need = int(self.read(self.img_top, 0))
         if need > self.img.shape[0]:
             self._grow_images(need + need // 4)
             self._density_factor()
@@ -735,25 +737,26 @@ class DFSPHSolver(SPHSolver):
 
     def _gated_solve(self, solve: int, total, warm_scale: float, bound: float, dt: float,
                      min_iterations: int) -> tuple[int, float]:
-        """_solve with the sweeps gated on the device: the warm start, then as many sweeps before
-        the first read as the solve is sure to take (min_iterations) or, on a GPU, as it took last
-        time, then one more per read. (A read costs the CPU about 0.2 ms, about one of a sweep's
-        two passes on the example; a sweep launched past the end would cost both.)"""
-        def sweeps(first: bool) -> None:
+        """_solve with the sweeps gated on the device: the warm start and the sweeps the solve is
+        sure to take (min_iterations) in one launch, then before the first read, on a GPU, as
+        many more as it took last time, then one more per read. (A read costs the CPU about 0.2
+        ms, about one of a sweep's two passes on the example; a sweep launched past the end
+        would cost both.)"""
+        def sweeps(warm_start: bool, count: int) -> None:
             k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.target, self.near,
                      self.near_count, self.gfac, self.lay, *self.images, self.alpha, self.wall_grad, self.kappa, total,
                      self.kappa_density_b, self.residual, self._summer.partial, self._summer.groups, dt, warm_scale,
                      self.prm, self.ftab, self.sweep_ctl, bound, self.n * self.params.lattice_density,
-                     min_iterations, self.max_iterations, solve, first)
+                     min_iterations, self.max_iterations, solve, warm_start, count)
 
-        sweeps(True)
-        for _ in range(min_iterations if self.on_cpu else max(self._last_sweeps[solve], min_iterations)):
-            sweeps(False)
+        sweeps(True, min_iterations)
+        for _ in range(0 if self.on_cpu else self._last_sweeps[solve] - min_iterations):
+            sweeps(False, 1)
         while True:
-            done, iterations, err = self.sweep_ctl.to_numpy()
+            done, iterations, err = self.read(self.sweep_ctl)
             if done:
                 break
-            sweeps(False)
+            sweeps(False, 1)
         self._last_sweeps[solve] = max(int(iterations), 1)
         return int(iterations), float(err)
 
@@ -801,7 +804,7 @@ class DFSPHSolver(SPHSolver):
                       self.density, self.near, self.near_count, self.gfac, self.lay, *self.images, self.prm,
                       self.ftab, self.stats, guess, self.normal, self.viscous, self.wall_visc, self.kern, mode,
                       self.viscous_terms)
-        self.vmax, self.vmax_lone = (float(v) for v in self.stats.to_numpy())
+        self.vmax, self.vmax_lone = (float(v) for v in self.read(self.stats))
 
     def kick(self, dt: float) -> None:
         """v* = v + dt a (step 5), with Morris's viscosity explicit while dt is within its
