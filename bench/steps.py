@@ -90,8 +90,10 @@ base.cleanup()
 """
 
 
-def anchor(stop_at: float) -> np.ndarray | None:
-    """The same rows for SPlisHSPlasH's DFSPH on the anchor's scene, or None without the anchor."""
+def in_anchor(code: str, stop_at: float, read=None):
+    """Run `code` in the anchor's venv as `python -c code SCENE STOP_AT OUT` on a copy of the
+    anchor's DFSPH scene; returns read(OUT), or its stdout without `read`, or None without the
+    anchor."""
     venv = Path(os.environ.get("ANCHOR_VENV", Path(tempfile.gettempdir()) / "anchorvenv"))
     if not (ANCHORS / "dambreak_dfsph.json").exists():
         print(f"# no anchor at {ANCHORS}; SPlisHSPlasH skipped")
@@ -99,7 +101,7 @@ def anchor(stop_at: float) -> np.ndarray | None:
     if not (venv / "bin" / "python").exists():      # the anchor's own script makes its venv
         subprocess.run(["bash", str(ANCHORS / "bench_splishsplash.sh"), "--solvers", "dfsph", "--stop-at", "0.001"],
                        check=True, capture_output=True)
-    work = Path(tempfile.mkdtemp(prefix="sphshot_steps_"))
+    work = Path(tempfile.mkdtemp(prefix="sphshot_anchor_"))
     try:
         for name in ("dambreak_dfsph.json", "tank_box.obj"):
             shutil.copy(ANCHORS / name, work)
@@ -107,12 +109,17 @@ def anchor(stop_at: float) -> np.ndarray | None:
         probe = subprocess.run([str(venv / "bin" / "python"), "-c", "import pysplishsplash"], capture_output=True)
         if probe.returncode != 0 and Path(GL_DISPATCH).exists():
             env["LD_PRELOAD"] = GL_DISPATCH
-        out = work / "rows.npy"
-        subprocess.run([str(venv / "bin" / "python"), "-c", ANCHOR_CHILD, str(work / "dambreak_dfsph.json"),
-                        str(stop_at), str(out)], check=True, capture_output=True, env=env, cwd=work)
-        return np.load(out)
+        out = work / "out.npy"
+        proc = subprocess.run([str(venv / "bin" / "python"), "-c", code, str(work / "dambreak_dfsph.json"),
+                               str(stop_at), str(out)], check=True, capture_output=True, text=True, env=env, cwd=work)
+        return read(out) if read else proc.stdout
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def anchor(stop_at: float) -> np.ndarray | None:
+    """The same rows for SPlisHSPlasH's DFSPH on the anchor's scene, or None without the anchor."""
+    return in_anchor(ANCHOR_CHILD, stop_at, np.load)
 
 
 def window_table(name: str, rows: np.ndarray, stop_at: float, window: float) -> list[str]:
