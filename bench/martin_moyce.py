@@ -25,6 +25,13 @@ ends, the slice's sides free (planes of symmetry of a wide channel, domain.no_sl
   .venv/bin/python bench/martin_moyce.py --radius 0.0025 --depth 0.02
   .venv/bin/python bench/martin_moyce.py --tank 0.8 --stokes-floor 1
   .venv/bin/python bench/martin_moyce.py --water --tank 0.92 --radius 0.000714 --depth 0.0071   # a / 80
+  .venv/bin/python bench/martin_moyce.py --splishsplash --radius 0.0025
+
+--splishsplash runs the same column through SPlisHSPlasH's DFSPH instead (the anchor's settings:
+mean density error 0.05 %, divergence error 0.1 %, cflFactor 1, volume-map walls; inviscid, so its
+walls hold nothing), in the anchor's venv (bench/steps.py's in_anchor). Its block sampling starts
+the particles 3r from the walls (the water 2r clear of them; its volume-map walls reach the fluid
+from h = 4r); it prints where its water starts and its front beside the experiment's.
 
 Not a test: figures and what they showed are in bench/RESULTS.md (thirty-first session).
 """
@@ -63,6 +70,73 @@ class StokesFloor:
         s.velocity.from_numpy(v.astype(np.float32))
 
 
+SPLISHSPLASH_CHILD = r"""
+import json, os, sys
+import numpy as np
+import pysplishsplash as sph
+scene, out = sys.argv[1], sys.argv[3]
+c = json.loads(PARAMS)
+r, a, L, depth = c["r"], c["a"], c["tank"], c["depth"]
+H = 2.5 * a
+doc = {"Configuration": {"stopAt": 1e-6, "particleRadius": r, "sim2D": False, "gravitation": [0, -9.81, 0],
+                         "simulationMethod": 4, "boundaryHandlingMethod": 2, "cflMethod": 1, "cflFactor": 1.0,
+                         "cflMaxTimeStepSize": 0.005, "enableZSort": True, "enablePartioExport": False,
+                         "enableVTKExport": False,
+                         "DFSPH": {"minIterations": 2, "maxIterations": 100, "maxError": 0.05,
+                                   "enableDivergenceSolver": True, "maxIterationsV": 100, "maxErrorV": 0.1}},
+       "Materials": [{"id": "Water", "density0": 1000.0, "viscosityMethod": 0, "surfaceTensionMethod": 0,
+                      "vorticityMethod": 0}],
+       "RigidBodies": [{"geometryFile": "tank_box.obj", "translation": [L / 2, H / 2, depth / 2],
+                        "scale": [L, H, depth], "isDynamic": False, "isWall": True, "mapInvert": True,
+                        "mapThickness": 0.0, "mapResolution": [int(L / (4 * r)), int(H / (4 * r)),
+                                                               max(int(depth / (4 * r)), 2)]}],
+       "FluidBlocks": [{"id": "Water", "denseMode": 0, "start": [0.0, 0.0, 0.0], "end": [a, 2 * a, depth - 2 * r],
+                        "translation": [r, r, 0.0], "scale": [1, 1, 1]}]}
+with open(scene, "w") as f:
+    json.dump(doc, f)
+base = sph.Exec.SimulatorBase()
+base.init(sceneFile=scene, useGui=False, initialPause=False, useCache=False,
+          outputDir=os.path.join(os.path.dirname(scene), "out"), stopAt=1e-6)
+base.initSimulation()
+base.runSimulation()
+tm, fm = sph.TimeManager.getCurrent(), sph.Simulation.getCurrent().getFluidModel(0)
+def positions():
+    return np.array([fm.getPosition(i) for i in range(fm.numActiveParticles())])
+rows = [[0.0, *positions().min(0), *positions().max(0)]]
+for t in c["times"]:
+    base.setValueFloat(base.STOP_AT, t)
+    while tm.getTime() < t - 1e-9 and base.timeStepNoGUI():
+        pass
+    rows.append([tm.getTime(), np.sort(positions()[:, 0])[-3] + r, 0, 0, 0, 0, 0])
+np.save(out, np.array(rows))
+base.cleanup()
+"""
+
+
+def splishsplash(args) -> None:
+    """Martin & Moyce's front through SPlisHSPlasH's DFSPH (the module's docstring)."""
+    import importlib.util
+    import json
+
+    spec = importlib.util.spec_from_file_location("bench_steps", ROOT / "bench" / "steps.py")
+    steps = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(steps)
+    a, r = args.a, args.radius
+    reach = (args.tank - 4 * r) / a
+    points = [(T, Z) for T, Z in mm.FRONT if Z < reach]
+    params = {"r": r, "a": a, "tank": args.tank, "depth": args.depth,
+              "times": [mm.front_time(T, a) for T, _ in points]}
+    rows = steps.in_anchor(SPLISHSPLASH_CHILD.replace("PARAMS", repr(json.dumps(params))), 0.0, np.load)
+    if rows is None:
+        return
+    lo, hi = rows[0, 1:4] - r, rows[0, 4:7] + r
+    print(f"SPlisHSPlasH DFSPH, Martin & Moyce n^2 = 2: a = {a} m, r = {r} m, tank {args.tank} m, slice "
+          f"{args.depth} m, inviscid; its water starts at x {lo[0]:.4f} ... {hi[0]:.4f}, y {lo[1]:.4f} ... "
+          f"{hi[1]:.4f}, z {lo[2]:.4f} ... {hi[2]:.4f} m")
+    for (T, Z), (t, x) in zip(points, rows[1:, :2]):
+        print(f"  front  T = {T:.3f}: experiment {Z:.3f}, SPlisHSPlasH {x / a:.3f} ({100 * (x / a / Z - 1):+.1f} %)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--a", type=float, default=0.1, help="column width, m (default 0.1; height 2a)")
@@ -75,7 +149,11 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--stokes-floor", type=float, default=0.0, metavar="F",
                     help="the floor's boundary layer at F times water's viscosity (default 0: none)")
+    ap.add_argument("--splishsplash", action="store_true",
+                    help="the same column through SPlisHSPlasH's DFSPH, as its block sampling places it (docstring)")
     args = ap.parse_args()
+    if args.splishsplash:
+        return splishsplash(args)
 
     from solver.backend import init_taichi
     init_taichi("cpu", args.threads)
