@@ -167,12 +167,18 @@ def counted(self, *a, **k):
     calls[self.func.__name__] += 1
     return call(self, *a, **k)
 K.Kernel.__call__ = counted
+import solver.sph as sph
+read = sph.SPHSolver.read
+def counted_read(self, *a, **k):               # on the CPU a read is element by element, no copy kernel
+    calls["element_read"] += self.on_cpu
+    return read(self, *a, **k)
+sph.SPHSolver.read = counted_read
 steps, t = s.steps, time.perf_counter()
 while s.steps < steps + 200:
     s.advance_some(1e30)
 ti.sync()
 n = s.steps - steps
-reads = calls.pop("ndarray_to_ext_arr", 0)        # to_numpy's copy: a read of the device's values
+reads = calls.pop("ndarray_to_ext_arr", 0) + calls.pop("element_read", 0)   # to_numpy's copy, or element reads
 print(f"HOST {(time.perf_counter() - t) / n * 1e3:.2f} ms a step, {sum(calls.values()) / n:.1f} launches and "
       f"{reads / n:.1f} reads a step ({s.n} particles)")
 """
@@ -181,7 +187,9 @@ print(f"HOST {(time.perf_counter() - t) / n * 1e3:.2f} ms a step, {sum(calls.val
 def host_section(limit: float) -> None:
     """A DFSPH step of 1,000 particles, whose kernels take next to nothing on a GPU: what its
     launches and reads cost the host each step, over its steps 10-210 (`--dry` on the 2-core CPU:
-    4.7 ms, 16.6 launches and 5.6 reads a step). The sim stage's GPU is idle while the host works."""
+    7.9 ms, 17.0 launches and 6.0 reads a step at the thirty-eighth session's end; 6.7 ms, 13.0 and 6.0
+    at the thirty-ninth's, whose solves launch their warm start and first sweeps as one kernel and
+    whose CPU reads are element by element). The sim stage's GPU is idle while the host works."""
     rc, out = run([PY, "-c", HOST, str(ROOT), BACKEND], limit)
     line = next((l for l in out.splitlines() if l.startswith("HOST")), None)
     print(line or out[-1500:], flush=True)
