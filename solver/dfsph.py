@@ -637,6 +637,7 @@ class DFSPHSolver(SPHSolver):
         # solve took last (as many are launched before the first read)
         self.sweep_ctl = ti.ndarray(ti.f64, 3)
         self._last_sweeps = {DIVERGENCE: MIN_DIVERGENCE_ITERATIONS, DENSITY: MIN_DENSITY_ITERATIONS}
+        self._one_sweep_ready = set()     # the solves whose one-sweep k_sweeps has been launched
         # Viscosity: Müller's particle-scale mu is explicit and caps the step; Morris's eta is
         # explicit while the step is within its limit, and solved implicitly beyond it
         table = params.fluid_table
@@ -757,6 +758,9 @@ class DFSPHSolver(SPHSolver):
             if done:
                 break
             sweeps(False, 1)
+        if solve not in self._one_sweep_ready:
+            sweeps(False, 1)        # gated off: compiles the one-sweep launch in the first step, not mid-run
+            self._one_sweep_ready.add(solve)
         self._last_sweeps[solve] = max(int(iterations), 1)
         return int(iterations), float(err)
 
