@@ -71,39 +71,11 @@ class StokesFloor:
 
 
 SPLISHSPLASH_CHILD = r"""
-import json, os, sys
-import numpy as np
-import pysplishsplash as sph
-scene, out = sys.argv[1], sys.argv[3]
-c = json.loads(PARAMS)
-r, a, L, depth = c["r"], c["a"], c["tank"], c["depth"]
-H = 2.5 * a
-doc = {"Configuration": {"stopAt": 1e-6, "particleRadius": r, "sim2D": False, "gravitation": [0, -9.81, 0],
-                         "simulationMethod": 4, "boundaryHandlingMethod": 2, "cflMethod": 1, "cflFactor": 1.0,
-                         "cflMaxTimeStepSize": 0.005, "enableZSort": True, "enablePartioExport": False,
-                         "enableVTKExport": False,
-                         "DFSPH": {"minIterations": 2, "maxIterations": 100, "maxError": 0.05,
-                                   "enableDivergenceSolver": True, "maxIterationsV": 100, "maxErrorV": 0.1}},
-       "Materials": [{"id": "Water", "density0": 1000.0, "viscosityMethod": 0, "surfaceTensionMethod": 0,
-                      "vorticityMethod": 0}],
-       "RigidBodies": [{"geometryFile": "tank_box.obj", "translation": [L / 2, H / 2, depth / 2],
-                        "scale": [L, H, depth], "isDynamic": False, "isWall": True, "mapInvert": True,
-                        "mapThickness": 0.0, "mapResolution": [int(L / (4 * r)), int(H / (4 * r)),
-                                                               max(int(depth / (4 * r)), 2)]}],
-       "FluidBlocks": [{"id": "Water", "denseMode": 0, "start": [0.0, 0.0, 0.0], "end": [a, 2 * a, depth - 2 * r],
-                        "translation": [r, r, 0.0], "scale": [1, 1, 1]}]}
-with open(scene, "w") as f:
-    json.dump(doc, f)
-base = sph.Exec.SimulatorBase()
-base.init(sceneFile=scene, useGui=False, initialPause=False, useCache=False,
-          outputDir=os.path.join(os.path.dirname(scene), "out"), stopAt=1e-6)
-base.initSimulation()
-base.runSimulation()
-tm, fm = sph.TimeManager.getCurrent(), sph.Simulation.getCurrent().getFluidModel(0)
+fm = sim.getFluidModel(0)
 def positions():
     return np.array([fm.getPosition(i) for i in range(fm.numActiveParticles())])
-rows = [[0.0, *positions().min(0), *positions().max(0)]]
-for t in c["times"]:
+r, rows = float(sys.argv[4]), [[0.0, *positions().min(0), *positions().max(0)]]
+for t in json.loads(sys.argv[5]):
     base.setValueFloat(base.STOP_AT, t)
     while tm.getTime() < t - 1e-9 and base.timeStepNoGUI():
         pass
@@ -111,6 +83,26 @@ for t in c["times"]:
 np.save(out, np.array(rows))
 base.cleanup()
 """
+
+
+def column_scene(a: float, r: float, tank: float, depth: float) -> dict:
+    """The column as a SPlisHSPlasH scene: the anchor's DFSPH settings, no viscosity, volume-map
+    walls, the block sampled from (0, 0, 0) to (a, 2a, depth - 2r) shifted by r."""
+    height = 2.5 * a
+    return {"Configuration": {"particleRadius": r, "sim2D": False, "gravitation": [0, -9.81, 0],
+                              "simulationMethod": 4, "boundaryHandlingMethod": 2, "cflMethod": 1, "cflFactor": 1.0,
+                              "cflMaxTimeStepSize": 0.005, "enableZSort": True, "enablePartioExport": False,
+                              "enableVTKExport": False,
+                              "DFSPH": {"minIterations": 2, "maxIterations": 100, "maxError": 0.05,
+                                        "enableDivergenceSolver": True, "maxIterationsV": 100, "maxErrorV": 0.1}},
+            "Materials": [{"id": "Water", "density0": 1000.0, "viscosityMethod": 0, "surfaceTensionMethod": 0,
+                           "vorticityMethod": 0}],
+            "RigidBodies": [{"geometryFile": "tank_box.obj", "translation": [tank / 2, height / 2, depth / 2],
+                             "scale": [tank, height, depth], "isDynamic": False, "isWall": True, "mapInvert": True,
+                             "mapThickness": 0.0, "mapResolution": [int(tank / (4 * r)), int(height / (4 * r)),
+                                                                    max(int(depth / (4 * r)), 2)]}],
+            "FluidBlocks": [{"id": "Water", "denseMode": 0, "start": [0.0, 0.0, 0.0], "end": [a, 2 * a, depth - 2 * r],
+                             "translation": [r, r, 0.0], "scale": [1, 1, 1]}]}
 
 
 def splishsplash(args) -> None:
@@ -124,9 +116,8 @@ def splishsplash(args) -> None:
     a, r = args.a, args.radius
     reach = (args.tank - 4 * r) / a
     points = [(T, Z) for T, Z in mm.FRONT if Z < reach]
-    params = {"r": r, "a": a, "tank": args.tank, "depth": args.depth,
-              "times": [mm.front_time(T, a) for T, _ in points]}
-    rows = steps.in_anchor(SPLISHSPLASH_CHILD.replace("PARAMS", repr(json.dumps(params))), 0.0, np.load)
+    times = json.dumps([mm.front_time(T, a) for T, _ in points])
+    rows = steps.in_anchor(SPLISHSPLASH_CHILD, 0.0, np.load, column_scene(a, r, args.tank, args.depth), (r, times))
     if rows is None:
         return
     lo, hi = rows[0, 1:4] - r, rows[0, 4:7] + r

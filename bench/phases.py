@@ -44,21 +44,8 @@ def load(name: str):
 
 
 ANCHOR_CHILD = r"""
-import json, os, sys
-import pysplishsplash as sph
 from pysplishsplash import Utilities
-scene, stop_at = sys.argv[1], float(sys.argv[2])
-with open(scene) as f:
-    doc = json.load(f)
-doc["Configuration"]["stopAt"] = 1e-6          # init and one step; the loop below runs the rest
-with open(scene, "w") as f:
-    json.dump(doc, f)
-base = sph.Exec.SimulatorBase()
-base.init(sceneFile=scene, useGui=False, initialPause=False, useCache=False,
-          outputDir=os.path.join(os.path.dirname(scene), "out"), stopAt=1e-6)
-base.initSimulation()
-base.runSimulation()
-ts = sph.Simulation.getCurrent().getTimeStep()
+ts = sim.getTimeStep()
 base.setValueFloat(base.STOP_AT, stop_at)
 Utilities.Timing.reset()
 steps = iters = iters_v = 0

@@ -59,22 +59,23 @@ def ours(stop_at: float) -> np.ndarray:
     return np.array(rows)
 
 
-ANCHOR_CHILD = r"""
+# What every child run in the anchor's venv starts with (in_anchor puts it before the child's
+# code): SPlisHSPlasH initialised on the scene in_anchor wrote, with its one step; then `base`,
+# `sim`, `tm` (its TimeManager), `stop_at` and `out` (the file to leave results in).
+ANCHOR_START = r"""
 import json, os, sys
 import numpy as np
 import pysplishsplash as sph
 scene, stop_at, out = sys.argv[1], float(sys.argv[2]), sys.argv[3]
-with open(scene) as f:
-    doc = json.load(f)
-doc["Configuration"]["stopAt"] = 1e-6          # init and one step; the loop below runs the rest
-with open(scene, "w") as f:
-    json.dump(doc, f)
 base = sph.Exec.SimulatorBase()
 base.init(sceneFile=scene, useGui=False, initialPause=False, useCache=False,
           outputDir=os.path.join(os.path.dirname(scene), "out"), stopAt=1e-6)
 base.initSimulation()
 base.runSimulation()
 sim, tm = sph.Simulation.getCurrent(), sph.TimeManager.getCurrent()
+"""
+
+ANCHOR_CHILD = r"""
 base.setValueFloat(base.STOP_AT, stop_at)
 fm = sim.getFluidModel(0)
 rows = []
@@ -90,10 +91,13 @@ base.cleanup()
 """
 
 
-def in_anchor(code: str, stop_at: float, read=None):
-    """Run `code` in the anchor's venv as `python -c code SCENE STOP_AT OUT` on a copy of the
-    anchor's DFSPH scene; returns read(OUT), or its stdout without `read`, or None without the
-    anchor."""
+def in_anchor(code: str, stop_at: float, read=None, scene: dict | None = None, args: tuple = ()):
+    """Run ANCHOR_START + `code` in the anchor's venv on `scene` (a SPlisHSPlasH scene; the
+    anchor's DFSPH dam break without one) beside the anchor's tank_box.obj, as `python -c CODE
+    SCENE STOP_AT OUT *args`; returns read(OUT),
+    or the run's stdout without `read`, or None without the anchor. The scene is written with
+    stopAt 1e-6: SPlisHSPlasH's init runs its deferred set-up (the walls' volume maps) and one
+    step, and the child's own loop runs the rest."""
     venv = Path(os.environ.get("ANCHOR_VENV", Path(tempfile.gettempdir()) / "anchorvenv"))
     if not (ANCHORS / "dambreak_dfsph.json").exists():
         print(f"# no anchor at {ANCHORS}; SPlisHSPlasH skipped")
@@ -103,15 +107,17 @@ def in_anchor(code: str, stop_at: float, read=None):
                        check=True, capture_output=True)
     work = Path(tempfile.mkdtemp(prefix="sphshot_anchor_"))
     try:
-        for name in ("dambreak_dfsph.json", "tank_box.obj"):
-            shutil.copy(ANCHORS / name, work)
+        shutil.copy(ANCHORS / "tank_box.obj", work)
+        doc = scene or json.loads((ANCHORS / "dambreak_dfsph.json").read_text())
+        doc["Configuration"]["stopAt"] = 1e-6
+        (work / "scene.json").write_text(json.dumps(doc))
         env = dict(os.environ)
         probe = subprocess.run([str(venv / "bin" / "python"), "-c", "import pysplishsplash"], capture_output=True)
         if probe.returncode != 0 and Path(GL_DISPATCH).exists():
             env["LD_PRELOAD"] = GL_DISPATCH
         out = work / "out.npy"
-        proc = subprocess.run([str(venv / "bin" / "python"), "-c", code, str(work / "dambreak_dfsph.json"),
-                               str(stop_at), str(out)], check=True, capture_output=True, text=True, env=env, cwd=work)
+        proc = subprocess.run([str(venv / "bin" / "python"), "-c", ANCHOR_START + code, str(work / "scene.json"),
+                               str(stop_at), str(out), *map(str, args)], check=True, capture_output=True, text=True, env=env, cwd=work)
         return read(out) if read else proc.stdout
     finally:
         shutil.rmtree(work, ignore_errors=True)
