@@ -739,10 +739,10 @@ class DFSPHSolver(SPHSolver):
     def _gated_solve(self, solve: int, total, warm_scale: float, bound: float, dt: float,
                      min_iterations: int) -> tuple[int, float]:
         """_solve with the sweeps gated on the device: the warm start and the sweeps the solve is
-        sure to take (min_iterations) in one launch, then before the first read, on a GPU, as
-        many more as it took last time, then one more per read. (A read costs the CPU about 0.2
-        ms, about one of a sweep's two passes on the example; a sweep launched past the end
-        would cost both.)"""
+        sure to take (min_iterations) in one launch, then, on a GPU, as many more before the
+        first read as it took last time (a read there waits for the device), then one more per
+        read (on the 2-core CPU a read of the controller costs the host about 25 us, a launch
+        past the end about 0.25 ms)."""
         def sweeps(warm_start: bool, count: int) -> None:
             k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.target, self.near,
                      self.near_count, self.gfac, self.lay, *self.images, self.alpha, self.wall_grad, self.kappa, total,

@@ -209,7 +209,7 @@ class SPHSolver:
         """The values of a small array (a controller, a count), or its element k, synced. On the
         CPU element by element: to_numpy launches a copy kernel and costs the host about 115 us
         however short the array, an element 8 (measured on the 2-core CPU; bench/RESULTS.md,
-        thirty-ninth session), and a DFSPH step reads four or five such arrays."""
+        thirty-ninth session), and a DFSPH step reads six or seven such arrays."""
         if k is not None:
             return a[k] if self.on_cpu else a.to_numpy()[k]
         if self.on_cpu:
