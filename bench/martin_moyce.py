@@ -74,7 +74,8 @@ SPLISHSPLASH_CHILD = r"""
 fm = sim.getFluidModel(0)
 def positions():
     return np.array([fm.getPosition(i) for i in range(fm.numActiveParticles())])
-r, rows = float(sys.argv[4]), [[0.0, *positions().min(0), *positions().max(0)]]
+r = float(sys.argv[4])
+rows = [[0.0, *positions().min(0), *positions().max(0)]]      # the particles' extent, then (t, front, 0...)
 for t in json.loads(sys.argv[5]):
     base.setValueFloat(base.STOP_AT, t)
     while tm.getTime() < t - 1e-9 and base.timeStepNoGUI():

@@ -94,10 +94,9 @@ base.cleanup()
 def in_anchor(code: str, stop_at: float, read=None, scene: dict | None = None, args: tuple = ()):
     """Run ANCHOR_START + `code` in the anchor's venv on `scene` (a SPlisHSPlasH scene; the
     anchor's DFSPH dam break without one) beside the anchor's tank_box.obj, as `python -c CODE
-    SCENE STOP_AT OUT *args`; returns read(OUT),
-    or the run's stdout without `read`, or None without the anchor. The scene is written with
-    stopAt 1e-6: SPlisHSPlasH's init runs its deferred set-up (the walls' volume maps) and one
-    step, and the child's own loop runs the rest."""
+    SCENE STOP_AT OUT *args`; returns read(OUT), or the run's stdout without `read`, or None
+    without the anchor. The scene is written with stopAt 1e-6: SPlisHSPlasH's init runs its
+    deferred set-up (the walls' volume maps) and one step, and the child's own loop the rest."""
     venv = Path(os.environ.get("ANCHOR_VENV", Path(tempfile.gettempdir()) / "anchorvenv"))
     if not (ANCHORS / "dambreak_dfsph.json").exists():
         print(f"# no anchor at {ANCHORS}; SPlisHSPlasH skipped")
@@ -116,8 +115,9 @@ def in_anchor(code: str, stop_at: float, read=None, scene: dict | None = None, a
         if probe.returncode != 0 and Path(GL_DISPATCH).exists():
             env["LD_PRELOAD"] = GL_DISPATCH
         out = work / "out.npy"
-        proc = subprocess.run([str(venv / "bin" / "python"), "-c", ANCHOR_START + code, str(work / "scene.json"),
-                               str(stop_at), str(out), *map(str, args)], check=True, capture_output=True, text=True, env=env, cwd=work)
+        command = [str(venv / "bin" / "python"), "-c", ANCHOR_START + code, str(work / "scene.json"), str(stop_at),
+                   str(out), *map(str, args)]
+        proc = subprocess.run(command, check=True, capture_output=True, text=True, env=env, cwd=work)
         return read(out) if read else proc.stdout
     finally:
         shutil.rmtree(work, ignore_errors=True)
