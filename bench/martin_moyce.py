@@ -108,17 +108,15 @@ def column_scene(a: float, r: float, tank: float, depth: float) -> dict:
 
 def splishsplash(args) -> None:
     """Martin & Moyce's front through SPlisHSPlasH's DFSPH (the module's docstring)."""
-    import importlib.util
     import json
 
-    spec = importlib.util.spec_from_file_location("bench_steps", ROOT / "bench" / "steps.py")
-    steps = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(steps)
+    from bench.steps import in_anchor
+
     a, r = args.a, args.radius
     reach = (args.tank - 4 * r) / a
     points = [(T, Z) for T, Z in mm.FRONT if Z < reach]
     times = json.dumps([mm.front_time(T, a) for T, _ in points])
-    rows = steps.in_anchor(SPLISHSPLASH_CHILD, 0.0, np.load, column_scene(a, r, args.tank, args.depth), (r, times))
+    rows = in_anchor(SPLISHSPLASH_CHILD, 0.0, np.load, column_scene(a, r, args.tank, args.depth), (r, times))
     if rows is None:
         return
     lo, hi = rows[0, 1:4] - r, rows[0, 4:7] + r

@@ -26,7 +26,6 @@ Not a test; figures and what they showed are in bench/RESULTS.md (thirty-ninth s
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import os
 import re
 import sys
@@ -34,13 +33,10 @@ from pathlib import Path
 from types import SimpleNamespace
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))     # bench.*, and the solver package ahead of bench/solver.py
 
-
-def load(name: str):
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "bench" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from bench.solver import run_sphshot  # noqa: E402
+from bench.steps import in_anchor  # noqa: E402
 
 
 ANCHOR_CHILD = r"""
@@ -64,10 +60,9 @@ ANCHOR_PHASES = {"neighbours": ("neighborhood_search",),
 
 
 def ours(stop_at: float) -> dict:
-    bench_solver = load("solver")
     args = SimpleNamespace(stop_at=stop_at, backend="cpu", threads=0, particles=50_000, radius=0.006,
                            solver="dfsph", fluid="anchor", phases=True, device_bytes=False, skin=None)
-    r = bench_solver.run_sphshot(args)
+    r = run_sphshot(args)
     steps = r["steps"]
     ms = {k: 1e3 * v / steps for k, v in r["phase_s"].items()}
     ms["step"] = 1e3 * r["wall_s"] / steps
@@ -76,7 +71,7 @@ def ours(stop_at: float) -> dict:
 
 
 def anchor(stop_at: float) -> dict | None:
-    out = load("steps").in_anchor(ANCHOR_CHILD, stop_at)
+    out = in_anchor(ANCHOR_CHILD, stop_at)
     if out is None:
         return None
     steps, iters, iters_v = (int(x) for x in re.search(r"^STEPS (\d+) (\d+) (\d+)$", out, re.M).groups())

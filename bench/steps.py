@@ -20,7 +20,6 @@ session.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import shutil
@@ -32,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))     # the solver package and bench.*, ahead of this folder (bench/solver.py)
 ANCHORS = ROOT.parent / "shared" / "anchors" / "solver"
 GL_DISPATCH = "/usr/lib/x86_64-linux-gnu/libGLdispatch.so.0"     # the anchor script's libGL workaround
 
@@ -39,16 +39,13 @@ GL_DISPATCH = "/usr/lib/x86_64-linux-gnu/libGLdispatch.so.0"     # the anchor sc
 def ours(stop_at: float) -> np.ndarray:
     """(t, dt, fastest |v|, 99.9th percentile speed, x, y, z of the fastest, CFL speed) after every
     step."""
-    sys.path[:0] = [str(ROOT)]
     from solver.backend import init_taichi
 
     init_taichi("cpu", 0)
-    spec_of = importlib.util.spec_from_file_location("bench_solver", ROOT / "bench" / "solver.py")
-    bench_solver = importlib.util.module_from_spec(spec_of)
-    spec_of.loader.exec_module(bench_solver)
+    from bench.solver import scene
     from pipeline.stages.sim import fresh_solver
 
-    _params, s = fresh_solver(bench_solver.scene(50_000, 0.006))
+    _params, s = fresh_solver(scene(50_000, 0.006))
     rows = []
     while s.time < stop_at:
         dt = s.step(stop_at)
