@@ -51,8 +51,10 @@ One step (Bender & Koschier 2017, Algorithm 1):
      surface, towards the particle's own target: SURFACE_FROM), until the mean relative
      compression is under max_density_error
   7. drift x += dt v*, collide
-Both solves start from the previous step's kappa (warm start). A particle's reported pressure
-is both solves' kappa times delta^2.
+Both solves start from the previous step's kappa (warm start): its push (1) is summed by the
+pass over the pairs just before the solve (step 1's for step 2, step 3's for step 6), and the
+solve's first launch only scales it. A particle's reported pressure is both solves' kappa times
+delta^2.
 """
 import math
 
@@ -129,7 +131,7 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
                      wall_grad: V3, verlet: I1, verlet_count: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
                      img: I1, img_g: V3, img_span: IV2, img_top: I1, prm: F1, ftab: F2, ghost_t: F4,
                      ghost_g: F4, visc_t: F2, wall_visc: F1, ctype: I1, cprm: F2, sdf: F1, surface_g: ti.f32,
-                     surface_d: ti.f32, kern: ti.template()):
+                     surface_d: ti.f32, warm_kappa: F1, warm_push: V3, kern: ti.template()):
     """Number density delta_i = sum_j W_ij + sum_b W_ib, density m_i delta_i and the factor
     alpha_i (a sweep's exact diagonal where the neighbourhood is sparse: module docstring), and
     the particle's target number density delta0 (1 - D_i) (SURFACE_FROM: D_i from how one-sided
@@ -145,7 +147,12 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
     neighbours are: `img` holds image_entry(j, sub) (sub: the walls' bit set), `img_g` grad
     W_ij', and img_span[i] = (start, count) particle i's entries. A particle with a wall near counts its
     images first and reserves as many entries at the pool's top (`img_top`, atomically); where the
-    pool is too small img_top ends past its size, and the host grows it and runs this again."""
+    pool is too small img_top ends past its size, and the host grows it and runs this again.
+
+    warm_push[i]: the push sum_j (k_i + k_j) grad W_ij + k_i grad W_ib (images included) of
+    k = warm_kappa, the divergence solve's last total, which that solve's warm start applies
+    (warm_start_pass): summed here, where every pair's gradient is at hand, and not in a pass of
+    its own."""
     h = prm[P_H]
     img_top[0] = 0
     cap = img.shape[0]
@@ -155,6 +162,8 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
         s = K.w_r2(kern, 0.0, h)
         grad_sum = vec3(0.0)
         sq = 0.0
+        ki = warm_kappa[i]
+        push = vec3(0.0)
         base = i * lay.x
         k = 0
         for m in range(verlet_count[i]):
@@ -172,6 +181,7 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
                 gfac[slot] = f
                 g = f * rv
                 grad_sum += g
+                push += (ki + warm_kappa[j]) * g
                 sq += g.norm_sqr() / ftab[fluid[j], F_MASS]
         near_count[i] = k
         # the box walls: images of i and its neighbours mirrored in the walls within h (and in
@@ -200,6 +210,7 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
                             r = ti.sqrt(r2)
                             g = K.dw(kern, r, h) / r * rv
                             grad_sum += g
+                            push += (ki + warm_kappa[j]) * g
                             sq += g.norm_sqr() / ftab[fluid[j], F_MASS]
                             if start + q < end:
                                 img[start + q] = image_entry(j, sub)
@@ -238,6 +249,7 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
         number_density[i] = s
         density[i] = mi * s
         wall_grad[i] = wg
+        warm_push[i] = push + ki * wg
         grad = grad_sum + wg
         beta = grad.norm_sqr() / mi + sq
         if sparse:
@@ -352,6 +364,23 @@ def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac:
             total[i] += ki
 
 
+@ti.func
+def warm_start_pass(velocity: T, fluid: T, total: T, warm_push: T, dt: ti.f32, warm: ti.f32, ftab: T):
+    """The warm start (Bender & Koschier 2017, Algorithms 2 and 3): equation (1) with kappa =
+    warm times the last solve's total, and total *= warm. A push is linear in kappa, so this is
+    warm times the push of the total, which the neighbour pass before the solve summed
+    (warm_push: k_density_factor's for the divergence solve, k_nonpressure's for the density
+    solve); a pass over the pairs of its own cost about as much as a sweep's apply pass."""
+    for i in total:
+        velocity[i] -= dt * warm / ftab[fluid[i], F_MASS] * warm_push[i]
+        total[i] *= warm
+
+
+@ti.kernel
+def k_warm_start(velocity: V3, fluid: I1, total: F1, warm_push: V3, dt: ti.f32, warm: ti.f32, ftab: F2):
+    warm_start_pass(velocity, fluid, total, warm_push, dt, warm, ftab)
+
+
 @ti.kernel
 def k_divergence_kappa(position: V3, velocity: V3, number_density: F1, target: F1, near: I1, near_count: I1,
                        gfac: F1, lay: ivec2, img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3, kappa: F1,
@@ -395,11 +424,11 @@ DIVERGENCE, DENSITY = 0, 1
 @ti.kernel
 def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, target: F1, near: I1, near_count: I1,
              gfac: F1, lay: ivec2, img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3, kappa: F1, total: F1,
-             scratch: F1, residual: F1, partial: F1, groups: D1, dt: ti.f32, warm: ti.f32, prm: F1, ftab: F2, go: D1,
+             warm_push: V3, residual: F1, partial: F1, groups: D1, dt: ti.f32, warm: ti.f32, prm: F1, ftab: F2, go: D1,
              bound: ti.f64, norm: ti.f64, min_iterations: ti.i32, max_iterations: ti.i32, solve: ti.template(),
              warm_start: ti.template(), count: ti.template()):
-    """warm_start: first the warm start (total *= warm, applied into `scratch`, the controller
-    reset); then `count` sweeps, each unless done as Bender & Koschier 2017's Algorithms 2 and 3
+    """warm_start: first the warm start (total *= warm and applied: warm_start_pass; the
+    controller reset); then `count` sweeps, each unless done as Bender & Koschier 2017's Algorithms 2 and 3
     (and SPlisHSPlasH) take it: this kappa and the mean error it removes, then kappa applied
     (total += kappa), one more iteration. Done once that error is within `bound` after
     min_iterations sweeps, or after max_iterations: the last kappa is applied, not computed to be
@@ -407,10 +436,7 @@ def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, target: 
     host about 0.25 ms however little its passes do.)"""
     if ti.static(warm_start):
         go[DONE], go[ITER], go[ERR] = 0.0, 0.0, 0.0
-        for i in total:
-            total[i] *= warm
-        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, img, img_g, img_span, total, scratch,
-                   wall_grad, dt, ftab, go)
+        warm_start_pass(velocity, fluid, total, warm_push, dt, warm, ftab)
     for _sweep in ti.static(range(count)):
         if ti.static(solve == DIVERGENCE):
             divergence_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, img,
@@ -432,8 +458,8 @@ def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, target: 
 @ti.kernel
 def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
                   near: I1, near_count: I1, gfac: F1, lay: ivec2, img: I1, img_g: V3, img_span: IV2, prm: F1,
-                  ftab: F2, stats: F1, dt_guess: ti.f32, normal: V3, viscous: V3, wall_visc: F1, kern: ti.template(),
-                  tension: ti.template(), terms: ti.template()):
+                  ftab: F2, stats: F1, dt_guess: ti.f32, normal: V3, viscous: V3, wall_visc: F1, wall_grad: V3,
+                  warm_kappa: F1, warm_push: V3, kern: ti.template(), tension: ti.template(), terms: ti.template()):
     """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
     raised to the largest |v + a dt_guess| of particles with a neighbour (the CFL speed), stats[1]
     to that of particles with none (stable_dt). Morris's term goes to `viscous`,
@@ -452,7 +478,9 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
     (n: `normal`, from k_surface_normals), which pulls a drop together instead of pushing its
     surface particles off it; the walls' images take part as neighbours (image_tension).
     `terms`: the viscosity terms any fluid of the shot has (MU_TERM, ETA_TERM, XSPH_TERM); the
-    others are zero for every pair and are not summed."""
+    others are zero for every pair and are not summed. warm_push[i]: as k_density_factor's, of
+    warm_kappa = the density solve's last total, for that solve's warm start: nothing moves the
+    particles between this pass and the solve."""
     h = prm[P_H]
     for i in position:
         c = consts_of(prm)
@@ -465,6 +493,8 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
         n = vec3(0.0)
         a_st = vec3(0.0)
         lap = K.lap_poly6(0.0, h) / di
+        ki = warm_kappa[i]
+        push = ki * wall_grad[i]
         base = i * lay.x
         for m in range(near_count[i]):
             j = near[base + m * lay.y]
@@ -472,6 +502,7 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
             r = rv.norm()
             dj = number_density[j]
             fj = fluid[j]
+            push += (ki + warm_kappa[j]) * gfac[base + m * lay.y] * rv
             if ti.static(terms & MU_TERM):
                 mu = 0.5 * (ftab[fi, F_MU] + ftab[fj, F_MU])
                 a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
@@ -493,6 +524,7 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
         if ti.static(tension == AKINCI):
             a += a_st + image_tension(i, fi, position, fluid, density, img, img_g, img_span, prm, ftab, normal)
         acceleration[i] = a
+        warm_push[i] = image_terms(push, i, img, img_g, img_span, warm_kappa, ki, False)
         viscous[i] = (a_eta / di - wall_visc[i] * vi) / ftab[fi, F_MASS]
         raise_max(stats, ti.select(near_count[i] > 0, 0, 1), (vi + dt_guess * a).norm())
 
@@ -625,6 +657,7 @@ class DFSPHSolver(SPHSolver):
         self.alpha, self.kappa = ti.ndarray(ti.f32, n), ti.ndarray(ti.f32, n)
         self.target = ti.ndarray(ti.f32, n)      # each particle's own rest number density (SURFACE_FROM)
         self.wall_grad = ti.Vector.ndarray(3, ti.f32, shape=n)
+        self.warm_push = ti.Vector.ndarray(3, ti.f32, shape=n)     # the next solve's warm start (warm_start_pass)
         self.normal = ti.Vector.ndarray(3, ti.f32, shape=n)     # Akinci et al. 2013's surface normals
         self.residual = ti.ndarray(ti.f32, n)
         # the walls' images beside the neighbour lists (k_density_factor), grown as needed
@@ -710,7 +743,7 @@ class DFSPHSolver(SPHSolver):
                          self.wall_grad, self.verlet, self.verlet_count, self.near, self.near_count, self.gfac,
                          self.lay, *self.images, self.img_top, self.prm, self.ftab, self.ghost_t, self.ghost_g,
                          self.visc_t, self.wall_visc, self.ctype, self.cprm, self.sdf, *self.params.surface_deficit,
-                         self.kern)
+                         self.kappa_divergence, self.warm_push, self.kern)
 
     def _solve(self, solve: int, total, warm_scale: float, bound: float, dt: float,
                min_iterations: int) -> tuple[int, float]:
@@ -724,8 +757,7 @@ class DFSPHSolver(SPHSolver):
         sweep."""
         if self.fused:
             return self._gated_solve(solve, total, warm_scale, bound, dt, min_iterations)
-        k_scale(total, warm_scale)
-        self._apply(total, self.kappa_density_b, dt)      # a scratch total, thrown away
+        k_warm_start(self.velocity, self.fluid, total, self.warm_push, dt, warm_scale, self.ftab)
         iterations, err = 0, math.inf
         while iterations < self.max_iterations:
             self._kappa(solve, dt)
@@ -746,7 +778,7 @@ class DFSPHSolver(SPHSolver):
         def sweeps(warm_start: bool, count: int) -> None:
             k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.target, self.near,
                      self.near_count, self.gfac, self.lay, *self.images, self.alpha, self.wall_grad, self.kappa, total,
-                     self.kappa_density_b, self.residual, self._summer.partial, self._summer.groups, dt, warm_scale,
+                     self.warm_push, self.residual, self._summer.partial, self._summer.groups, dt, warm_scale,
                      self.prm, self.ftab, self.sweep_ctl, bound, self.n * self.params.lattice_density,
                      min_iterations, self.max_iterations, solve, warm_start, count)
 
@@ -806,8 +838,8 @@ class DFSPHSolver(SPHSolver):
                               *self.images, self.normal, self.prm, self.kern)
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
                       self.density, self.near, self.near_count, self.gfac, self.lay, *self.images, self.prm,
-                      self.ftab, self.stats, guess, self.normal, self.viscous, self.wall_visc, self.kern, mode,
-                      self.viscous_terms)
+                      self.ftab, self.stats, guess, self.normal, self.viscous, self.wall_visc, self.wall_grad,
+                      self.kappa_density, self.warm_push, self.kern, mode, self.viscous_terms)
         self.vmax, self.vmax_lone = (float(v) for v in self.read(self.stats))
 
     def kick(self, dt: float) -> None:
