@@ -1,18 +1,30 @@
 """Neighbour search: particles counting-sorted by grid cell, and Verlet lists.
 
-Cells are (h + skin) / CELL_DIV wide. The sort (count, scan, scatter, gather) keeps each
-cell's particles contiguous in memory; a particle's Verlet list holds every other particle
-within h + skin of it at the reference positions the lists were built at.
+Cells are (h + skin) / div wide (div: CELL_DIV on a GPU, 1 on the CPU). The sort (count, scan,
+scatter, gather) keeps each cell's particles contiguous in memory; a particle's Verlet list holds
+every other particle within h + skin of it at the reference positions the lists were built at.
+On the CPU the particles of a cell are listed GROUP at a time: each candidate is read once for
+the group (list_pass).
 """
 import taichi as ti
 
 from .types import D1, F1, I1, T, V3, ivec2, ivec3, vec3
 
 SCAN_BLOCK = 256
-# Cells are (h + skin) / CELL_DIV wide; a particle's list neighbours lie within CELL_DIV cells each way. With
-# CELL_DIV = 2 the 5 x 5 x 5 cells searched cover 42% less volume than 3 x 3 x 3 cells of size h,
-# so fewer candidates are tested; each row of 5 cells along x is contiguous in memory.
+# On a GPU, cells are (h + skin) / CELL_DIV wide; a particle's list neighbours lie within CELL_DIV
+# cells each way. With CELL_DIV = 2 the 5 x 5 x 5 cells searched cover 42% less volume than 3 x 3 x 3
+# cells of size h, so fewer candidates are tested; each row of 5 cells along x is contiguous in memory.
 CELL_DIV = 2
+# On the CPU: cells h + skin wide, and a cell's particles listed GROUP at a time against the 3 x 3
+# rows of 3 cells around it (grouped_list_pass). A candidate is then loaded once for GROUP
+# distance tests, which LLVM packs into one vector operation at 4, and a particle pays for
+# 9 / GROUP rows (each row's loop ends in a mispredicted exit) instead of 25, though it tests 1.7
+# times the candidates. The list pass alone on bench/solver.py's dam break at 0.15 s (1.45 M
+# pairs, medians of 40): 12.1-12.6 ms as CELL_DIV = 2 lists, 5.3-6.3 ms grouped by 4, 14-17 ms by
+# 3, 5 or 6 (registers spilled, nothing packed); and the sort's passes over the cells run over 8
+# times fewer cells (bench/RESULTS.md, fortieth session).
+GROUP = 4
+FAR = 1e10     # m: where a group's missing members are tested from
 # Verlet-list skin, in units of h: lists hold pairs within h (1 + SKIN) and last until a particle
 # has moved SKIN h / 2 from where they were built. Measured on the 50k dam break (bench/solver.py,
 # 0.5 s): 0.15 rebuilds too often, 0.25 lists too many pairs; 0.2 was fastest.
@@ -188,21 +200,35 @@ def k_gather(order: I1, position: V3, ref: V3, velocity: V3, acceleration: V3, f
 
 @ti.kernel
 def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, reach: ti.f32,
-                 start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3, longest: D1, at: ti.i32):
-    list_pass(ref, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest, at)
+                 start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3, longest: D1, at: ti.i32,
+                 group: ti.template()):
+    list_pass(ref, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest, at, group)
 
 
 @ti.func
 def list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.template(), cap: ti.i32,
               lay: ti.template(), reach: ti.f32, start: ti.template(), count: ti.template(), origin: ti.template(),
-              inv_cell: ti.f32, dims: ti.template(), longest: ti.template(), at: ti.i32):
+              inv_cell: ti.f32, dims: ti.template(), longest: ti.template(), at: ti.i32, group: ti.template()):
     """Verlet lists: every j != i within `reach` (= h + skin) of i, at the reference positions,
     in grid order, entry m at verlet[i * lay.x + m * lay.y] (see SPHSolver.lay). A particle with
     more than `cap` raises longest[at] to its count (longest[at] starts at 0 here), and the
     lists are built again larger. The candidate loop has no branch: in a
     disordered fluid, whether a candidate is a neighbour is a coin toss that a branch
-    predictor keeps losing."""
+    predictor keeps losing. group > 1 (cells reach wide): grouped_list_pass, the same lists
+    for the same sort."""
     longest[at] = 0.0
+    if ti.static(group > 1):
+        grouped_list_pass(ref, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest,
+                          at, group)
+    else:
+        cell_list_pass(ref, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest, at)
+
+
+@ti.func
+def cell_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.template(), cap: ti.i32,
+                   lay: ti.template(), reach: ti.f32, start: ti.template(), count: ti.template(),
+                   origin: ti.template(), inv_cell: ti.f32, dims: ti.template(), longest: ti.template(), at: ti.i32):
+    """list_pass a particle at a time, over the CELL_DIV-wide cells' 5 x 5 rows."""
     for i in ref:
         xi = ref[i]
         ci = cell_of(xi, origin, inv_cell, dims)
@@ -225,6 +251,58 @@ def list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.templa
             ti.atomic_max(longest[at], ti.cast(m, ti.f64))
 
 
+@ti.func
+def grouped_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.template(), cap: ti.i32,
+                      lay: ti.template(), reach: ti.f32, start: ti.template(), count: ti.template(),
+                      origin: ti.template(), inv_cell: ti.f32, dims: ti.template(), longest: ti.template(),
+                      at: ti.i32, group: ti.template()):
+    """list_pass over cells `reach` wide, `group` particles of a cell at a time: the thread of a
+    cell's particle k * group lists it and the next group - 1 of its cell against the 3 x 3 rows
+    of 3 cells around their cell, each candidate read once and tested for each (each list holds
+    the entries, in the order, that the rows would give a particle alone). Branch-free as the
+    candidate loop is: where the cell has fewer members left, the missing ones are tested from
+    FAR away and write into the leader's last slot. That slot is every list's spill slot (a
+    member's entries past it land there too), so a list holds at most cap - 1 entries, and one
+    with more raises longest[at] to its count."""
+    for i in ref:
+        ci = cell_of(ref[i], origin, inv_cell, dims)
+        c = flat(ci, dims)
+        s0 = start[c]
+        if (i - s0) % group == 0:
+            g = ti.min(group, s0 + count[c] - i)
+            xs = ti.Matrix.zero(ti.f32, group, 3)
+            m = ti.Vector.zero(ti.i32, group)         # each member's neighbours so far
+            addr = ti.Vector.zero(ti.i32, group)      # where its next entry goes
+            end = ti.Vector.zero(ti.i32, group)       # its list's last slot, where it overflows into
+            for p in ti.static(range(group)):
+                xp = vec3(FAR)                        # no member: never within reach, and writes
+                k = i                                 # only into the leader's last slot
+                if p < g:
+                    xp, k = ref[i + p], i + p
+                for d in ti.static(range(3)):
+                    xs[p, d] = xp[d]
+                end[p] = k * lay.x + (cap - 1) * lay.y
+                addr[p] = ti.select(p < g, k * lay.x, end[p])
+            for dz, dy in ti.ndrange((-1, 2), (-1, 2)):
+                cy, cz = ci.y + dy, ci.z + dz
+                if 0 <= cy < dims.y and 0 <= cz < dims.z:
+                    c0 = flat(ivec3(ti.max(ci.x - 1, 0), cy, cz), dims)
+                    c1 = flat(ivec3(ti.min(ci.x + 1, dims.x - 1), cy, cz), dims)
+                    for j in range(start[c0], start[c1] + count[c1]):
+                        xj = ref[j]
+                        for p in ti.static(range(group)):
+                            r2 = (xs[p, 0] - xj[0]) ** 2 + (xs[p, 1] - xj[1]) ** 2 + (xs[p, 2] - xj[2]) ** 2
+                            verlet[addr[p]] = j
+                            inside = (r2 < reach * reach) & (j != i + p)
+                            m[p] += ti.select(inside, 1, 0)
+                            addr[p] = ti.min(addr[p] + ti.select(inside, lay.y, 0), end[p])
+            for p in ti.static(range(group)):
+                if p < g:
+                    verlet_count[i + p] = ti.min(m[p], cap - 1)
+                    if m[p] > cap - 1:
+                        ti.atomic_max(longest[at], ti.cast(m[p], ti.f64))
+
+
 # --------------------------------------------------------------- the whole rebuild, one launch
 @ti.kernel
 def k_rebuild(position: V3, ref: V3, velocity: V3, acceleration: V3, fluid: I1, id: I1,
@@ -232,7 +310,7 @@ def k_rebuild(position: V3, ref: V3, velocity: V3, acceleration: V3, fluid: I1, 
               cell: I1, count: I1, fill: I1, start: I1, order: I1, sums: I1, sums2: I1,
               verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, reach: ti.f32,
               origin: vec3, inv_cell: ti.f32, dims: ivec3, longest: D1, at: ti.i32, n: ti.i32, nb: ti.i32,
-              nb2: ti.i32, from_position: ti.template()):
+              nb2: ti.i32, from_position: ti.template(), group: ti.template()):
     """The sort and the lists of SPHSolver.build_lists in one launch (its loops run in order on
     the device, as the ten launches they replace did; see wcsph.k_step for why): the counting
     sort into the *_o arrays, then k_neighbours' lists at the sorted reference positions. With
@@ -253,7 +331,7 @@ def k_rebuild(position: V3, ref: V3, velocity: V3, acceleration: V3, fluid: I1, 
     sort_runs_pass(start, count, order)
     gather_pass(order, position, source, velocity, acceleration, fluid, id,
                 position_o, ref_o, velocity_o, acceleration_o, fluid_o, id_o)
-    list_pass(ref_o, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest, at)
+    list_pass(ref_o, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest, at, group)
 
 
 @ti.kernel

@@ -25,7 +25,7 @@ from .backend import current_arch
 from . import clock
 from .boundaries import collider_arrays, k_collide
 from .errors import TooLarge, Unstable
-from .neighbours import (CELL_DIV, SCAN_BLOCK, SKIN, exclusive_scan, k_clear2, k_count, k_gather, k_moved_beyond,
+from .neighbours import (CELL_DIV, GROUP, SCAN_BLOCK, SKIN, exclusive_scan, k_clear2, k_count, k_gather, k_moved_beyond,
                          k_neighbours, k_rebuild, k_scatter)
 from .params import F_ETA, F_MU, F_RHO0, F_SIGMA, SolverParams
 from .types import ivec2, ivec3, pack_constants, vec3
@@ -74,6 +74,8 @@ class SPHSolver:
     FUSED: bool | None = None                 # a step, and a list rebuild, in one launch each (wcsph.k_step,
                                               # neighbours.k_rebuild); None: on a GPU
     LISTS_CHECKED_AT_ONCE = False             # WCSPH: an overflow is read with the controller, after the batch
+    GROUPED: bool | None = None               # lists a cell's particles GROUP at a time, over cells h + skin
+                                              # wide (neighbours.grouped_list_pass); None: on the CPU
     SKIN = SKIN                               # Verlet skin in units of h (neighbours.SKIN)
 
     def __init__(self, params: SolverParams, state: dict[str, np.ndarray], time_s: float = 0.0,
@@ -90,7 +92,10 @@ class SPHSolver:
         self.origin = vec3(*params.domain_min)
         size = np.array(params.domain_max) - np.array(params.domain_min)
         self.skin = self.SKIN * h
-        cell = (h + self.skin) / CELL_DIV         # the lists reach h + skin
+        self.on_cpu = current_arch() == "cpu"
+        grouped = self.on_cpu if self.GROUPED is None else self.GROUPED
+        self.list_group = GROUP if grouped else 1
+        cell = (h + self.skin) / (1 if grouped else CELL_DIV)        # the lists reach h + skin
         dims = np.maximum(np.ceil(size / cell).astype(int), 1)
         self.dims = ivec3(*map(int, dims))
         self.n_cells = int(np.prod(dims))
@@ -120,7 +125,6 @@ class SPHSolver:
         self._built_at, self._life = self.steps, 1     # when the lists were built, how long the last lasted
         # neighbour lists: room for 1.5x the fill lattice's pairs within h + skin, grown on overflow
         self.nb_cap = 0
-        self.on_cpu = current_arch() == "cpu"
         self.fused = (not self.on_cpu) if self.FUSED is None else self.FUSED
         self._grow_neighbours(int(1.5 * 4.0 / 3.0 * math.pi * ((h + self.skin) / params.spacing) ** 3) + 8)
         self.lists_built = 0
@@ -171,7 +175,7 @@ class SPHSolver:
                       self.cell, self.count, self.fill, self.start, self.order, *sums,
                       self.verlet, self.verlet_count, self.nb_cap, self.lay, self.h + self.skin, self.origin,
                       self.inv_cell, self.dims, self.ctl, clock.OVERFLOW, self.n_cells,
-                      *(a.shape[0] for a in sums), from_position)
+                      *(a.shape[0] for a in sums), from_position, self.list_group)
             self._swap_sorted()
         else:
             if from_position:
@@ -203,7 +207,7 @@ class SPHSolver:
         """The Verlet lists at the sorted reference positions; a list longer than the room
         leaves its length in the controller's OVERFLOW, which keeps the step gate closed."""
         k_neighbours(self.ref, self.verlet, self.verlet_count, self.nb_cap, self.lay, self.h + self.skin, self.start,
-                     self.count, self.origin, self.inv_cell, self.dims, self.ctl, clock.OVERFLOW)
+                     self.count, self.origin, self.inv_cell, self.dims, self.ctl, clock.OVERFLOW, self.list_group)
 
     def read(self, a, k: int | None = None):
         """The values of a small array (a controller, a count), or its element k, synced. On the

@@ -353,14 +353,18 @@ def test_batched_gated_steps_match_one_step_at_a_time(monkeypatch):
     assert runs[0][-1][2] > 3 and runs[0][-1][0] == 3 / 48
 
 
-def test_one_launch_rebuild_sorts_and_lists_as_the_separate_launches(monkeypatch):
+@pytest.mark.parametrize("grouped", [False, True])
+def test_one_launch_rebuild_sorts_and_lists_as_the_separate_launches(grouped, monkeypatch):
     """On a GPU the sort and the lists are one launch (neighbours.k_rebuild) with its own cell
     scan: runs of 256 cells, runs of 256 runs, then a serial scan. On a grid of over 65,536 cells
-    (1 m^3 at h = 4 cm: all three levels in use), forced on the CPU after the block has moved: the
-    same cell starts, particle order and lists as the ten launches it replaces."""
+    (all three levels in use: 1 m^3 at h = 4 cm in the GPU's cells of (h + skin) / 2, 8 m^3 in
+    the CPU's cells h + skin wide, whose lists are grouped), forced on the CPU after the block has
+    moved: the same cell starts, particle order and lists as the ten launches it replaces."""
     from solver.sph import SPHSolver
 
-    spec_dict = wcsph_spec(((0.3, 0.3, 0.3), (0.5, 0.45, 0.4)))
+    monkeypatch.setattr(SPHSolver, "GROUPED", grouped)
+    size = 2.0 if grouped else 1.0
+    spec_dict = wcsph_spec(((0.3, 0.3, 0.3), (0.5, 0.45, 0.4)), ((0, 0, 0), (size, size, size)))
     built = []
     for fused in (False, True):
         monkeypatch.setattr(SPHSolver, "FUSED", fused)
