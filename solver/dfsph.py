@@ -293,19 +293,46 @@ def image_terms(out, i, img: ti.template(), img_g: ti.template(), img_span: ti.t
     return out
 
 
+# The sweeps' passes sum a particle's pairs alternately into two sums, added at the end: one sum's
+# adds wait on each other (each a float add's latency), two overlap. On bench/solver.py's dam break
+# at 0.15 s (2-core AMD EPYC, the two versions timed alternately in one process, 150 launches
+# each): the apply pass 11 % faster, the kappa pass 5 %; four sums, or two in the
+# non-pressure pass, were slower (bench/RESULTS.md, forty-first session).
 @ti.func
 def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.template(),
                  near_count: ti.template(), gfac: ti.template(), lay: ivec2, wall_grad: ti.template(),
                  img: ti.template(), img_g: ti.template(), img_span: ti.template()):
     """D delta_i / Dt = sum_j (v_i - v_j) . grad W_ij + v_i . sum_b grad W_ib (samples at rest),
-    with the walls' images j' of i and its neighbours (velocities mirrored)."""
+    with the walls' images j' of i and its neighbours (velocities mirrored); the pairs summed
+    alternately into two sums (see above)."""
     xi, vi = position[i], velocity[i]
     rate = vi.dot(wall_grad[i])
     base = i * lay.x
-    for m in range(near_count[i]):
-        j = near[base + m * lay.y]
-        rate += (vi - velocity[j]).dot(gfac[base + m * lay.y] * (xi - position[j]))
-    return image_terms(rate, i, img, img_g, img_span, velocity, 0.0, True)
+    n = near_count[i]
+    r0, r1 = 0.0, 0.0
+    for q in range(n // 2):
+        e = base + 2 * q * lay.y
+        r0 += rate_term(xi, vi, e, near, position, velocity, gfac)
+        r1 += rate_term(xi, vi, e + lay.y, near, position, velocity, gfac)
+    if n % 2 == 1:
+        rate += rate_term(xi, vi, base + (n - 1) * lay.y, near, position, velocity, gfac)
+    return image_terms(rate + (r0 + r1), i, img, img_g, img_span, velocity, 0.0, True)
+
+
+@ti.func
+def rate_term(xi, vi, e, near: ti.template(), position: ti.template(), velocity: ti.template(),
+              gfac: ti.template()):
+    """(v_i - v_j) . grad W_ij for the neighbour list's entry e."""
+    j = near[e]
+    return (vi - velocity[j]).dot(gfac[e] * (xi - position[j]))
+
+
+@ti.func
+def push_term(xi, ki, e, near: ti.template(), position: ti.template(), kappa: ti.template(),
+              gfac: ti.template()):
+    """(kappa_i + kappa_j) grad W_ij for the neighbour list's entry e."""
+    j = near[e]
+    return (ki + kappa[j]) * gfac[e] * (xi - position[j])
 
 
 @ti.func
@@ -349,17 +376,23 @@ def density_kappa_pass(position: T, velocity: T, number_density: T, target: T, n
 def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac: T, lay: T, img: T, img_g: T,
                img_span: T, kappa: T, total: T, wall_grad: T, dt: ti.f32, ftab: T, go: T):
     """Equation (1) with this sweep's kappa; total += kappa (the step's pressure, and the next
-    step's warm start). The walls' images j' carry kappa_j."""
+    step's warm start). The walls' images j' carry kappa_j. The pairs are summed alternately
+    into two sums, as density_rate's."""
     for i in position:
         if sweep_open(go):
             xi = position[i]
             ki = kappa[i]
             push = ki * wall_grad[i]
             base = i * lay.x
-            for m in range(near_count[i]):
-                j = near[base + m * lay.y]
-                push += (ki + kappa[j]) * gfac[base + m * lay.y] * (xi - position[j])
-            push = image_terms(push, i, img, img_g, img_span, kappa, ki, False)
+            n = near_count[i]
+            p0, p1 = vec3(0.0), vec3(0.0)
+            for q in range(n // 2):
+                e = base + 2 * q * lay.y
+                p0 += push_term(xi, ki, e, near, position, kappa, gfac)
+                p1 += push_term(xi, ki, e + lay.y, near, position, kappa, gfac)
+            if n % 2 == 1:
+                push += push_term(xi, ki, base + (n - 1) * lay.y, near, position, kappa, gfac)
+            push = image_terms(push + (p0 + p1), i, img, img_g, img_span, kappa, ki, False)
             velocity[i] -= dt / ftab[fluid[i], F_MASS] * push
             total[i] += ki
 
