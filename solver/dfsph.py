@@ -64,7 +64,7 @@ import taichi as ti
 from . import kernels as K
 from .boundaries import boundary_sums, mirror_walls, reflect, reflect_velocity, wall_viscosity
 from .errors import Unstable
-from .neighbours import k_gather_f1
+from .neighbours import k_gather_f1, list_step
 from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, NO_SLIP_ROWS, SolverParams
 from .sph import NOT_FINITE, SPHSolver, explicit_viscous_limit
 from .sums import Summer, chunk_sums_pass, sweep_open, total_pass
@@ -129,6 +129,7 @@ SPEED_FLOOR = 0.25
 @ti.kernel
 def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, alpha: F1, target: F1,
                      wall_grad: V3, verlet: I1, verlet_count: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
+                     rows: ti.template(),
                      img: I1, img_g: V3, img_span: IV2, img_top: I1, prm: F1, ftab: F2, ghost_t: F4,
                      ghost_g: F4, visc_t: F2, wall_visc: F1, ctype: I1, cprm: F2, sdf: F1, surface_g: ti.f32,
                      surface_d: ti.f32, warm_kappa: F1, warm_push: V3, kern: ti.template()):
@@ -165,13 +166,14 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
         ki = warm_kappa[i]
         push = vec3(0.0)
         base = i * lay.x
+        step = list_step(lay, rows)
         k = 0
         for m in range(verlet_count[i]):
-            j = verlet[base + m * lay.y]
+            j = verlet[base + m * step]
             rv = xi - position[j]
             r2 = rv.norm_sqr()
             inside = (r2 < h * h) & (r2 > 1e-18)
-            slot = base + k * lay.y
+            slot = base + k * step
             near[slot] = j
             k += ti.select(inside, 1, 0)
             if inside:
@@ -194,7 +196,7 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
             for sub in range(1, 8):
                 if (sub & mask) == sub:
                     for m in range(-1, k):
-                        j = i if m < 0 else near[base + m * lay.y]
+                        j = i if m < 0 else near[base + m * step]
                         r2 = (xi - reflect(position[j], sub, planes)).norm_sqr()
                         reserve += ti.select((r2 < h * h) & (r2 > 1e-18), 1, 0)
             start = ti.atomic_add(img_top[0], reserve)
@@ -202,7 +204,7 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
             for sub in range(1, 8):
                 if (sub & mask) == sub:
                     for m in range(-1, k):
-                        j = i if m < 0 else near[base + m * lay.y]
+                        j = i if m < 0 else near[base + m * step]
                         rv = xi - reflect(position[j], sub, planes)
                         r2 = rv.norm_sqr()
                         if (r2 < h * h) & (r2 > 1e-18):
@@ -224,10 +226,10 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
         sq_exact = 0.0
         if sparse:
             for m in range(-1, k):
-                j = i if m < 0 else near[base + m * lay.y]
+                j = i if m < 0 else near[base + m * step]
                 back = vec3(0.0)
                 if m >= 0:
-                    back = gfac[base + m * lay.y] * (xi - position[j])
+                    back = gfac[base + m * step] * (xi - position[j])
                 for sub in range(1, 8):
                     if (sub & mask) == sub:
                         rv = xi - reflect(position[j], sub, planes)
@@ -300,22 +302,23 @@ def image_terms(out, i, img: ti.template(), img_g: ti.template(), img_span: ti.t
 # non-pressure pass, were slower (bench/RESULTS.md, forty-first session).
 @ti.func
 def density_rate(i, velocity: ti.template(), position: ti.template(), near: ti.template(),
-                 near_count: ti.template(), gfac: ti.template(), lay: ivec2, wall_grad: ti.template(),
-                 img: ti.template(), img_g: ti.template(), img_span: ti.template()):
+                 near_count: ti.template(), gfac: ti.template(), lay: ivec2, rows: ti.template(),
+                 wall_grad: ti.template(), img: ti.template(), img_g: ti.template(), img_span: ti.template()):
     """D delta_i / Dt = sum_j (v_i - v_j) . grad W_ij + v_i . sum_b grad W_ib (samples at rest),
     with the walls' images j' of i and its neighbours (velocities mirrored); the pairs summed
     alternately into two sums (see above)."""
     xi, vi = position[i], velocity[i]
     rate = vi.dot(wall_grad[i])
     base = i * lay.x
+    step = list_step(lay, rows)
     n = near_count[i]
     r0, r1 = 0.0, 0.0
     for q in range(n // 2):
-        e = base + 2 * q * lay.y
+        e = base + 2 * q * step
         r0 += rate_term(xi, vi, e, near, position, velocity, gfac)
-        r1 += rate_term(xi, vi, e + lay.y, near, position, velocity, gfac)
+        r1 += rate_term(xi, vi, e + step, near, position, velocity, gfac)
     if n % 2 == 1:
-        rate += rate_term(xi, vi, base + (n - 1) * lay.y, near, position, velocity, gfac)
+        rate += rate_term(xi, vi, base + (n - 1) * step, near, position, velocity, gfac)
     return image_terms(rate + (r0 + r1), i, img, img_g, img_span, velocity, 0.0, True)
 
 
@@ -337,7 +340,7 @@ def push_term(xi, ki, e, near: ti.template(), position: ti.template(), kappa: ti
 
 @ti.func
 def divergence_kappa_pass(position: T, velocity: T, number_density: T, target: T, near: T, near_count: T, gfac: T,
-                          lay: T, img: T, img_g: T, img_span: T, alpha: T, wall_grad: T, kappa: T, residual: T,
+                          lay: T, rows: T, img: T, img_g: T, img_span: T, alpha: T, wall_grad: T, kappa: T, residual: T,
                           dt: ti.f32, go: T):
     """kappa_i = alpha_i max(D delta_i / Dt, 0) / dt for particles with a full neighbourhood
     (MIN_DIVERGENCE_NEIGHBOURS), and EXPANSION_WEIGHT alpha_i (D delta_i / Dt) / dt where those
@@ -345,7 +348,8 @@ def divergence_kappa_pass(position: T, velocity: T, number_density: T, target: T
     negative kappa); residual[i] the rate each compresses or expands at that the sweep acts on."""
     for i in position:
         if sweep_open(go):
-            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad, img, img_g, img_span)
+            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, rows, wall_grad, img, img_g,
+                                img_span)
             loose = number_density[i] < (1.0 - LOOSE) * target[i]
             compressing = (rate > 0.0) & (near_count[i] >= MIN_DIVERGENCE_NEIGHBOURS)
             thinned = loose & (rate < 0.0) & (near_count[i] >= PULL_BACK_NEIGHBOURS)
@@ -356,7 +360,7 @@ def divergence_kappa_pass(position: T, velocity: T, number_density: T, target: T
 
 @ti.func
 def density_kappa_pass(position: T, velocity: T, number_density: T, target: T, near: T, near_count: T, gfac: T,
-                       lay: T, img: T, img_g: T, img_span: T, alpha: T, wall_grad: T, kappa: T, residual: T,
+                       lay: T, rows: T, img: T, img_g: T, img_span: T, alpha: T, wall_grad: T, kappa: T, residual: T,
                        dt: ti.f32, prm: T, go: T):
     """kappa_i = alpha_i e / dt^2 with delta* = delta + dt D delta / Dt and the compression
     e = max(delta*_i - delta0, min(delta*_i - target_i, SURFACE_PUSH delta0), 0): over rest
@@ -365,7 +369,8 @@ def density_kappa_pass(position: T, velocity: T, number_density: T, target: T, n
     for i in position:
         if sweep_open(go):
             c = consts_of(prm)
-            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, wall_grad, img, img_g, img_span)
+            rate = density_rate(i, velocity, position, near, near_count, gfac, lay, rows, wall_grad, img, img_g,
+                                img_span)
             predicted = number_density[i] + dt * rate
             excess = ti.max(predicted - c.lattice, ti.min(predicted - target[i], SURFACE_PUSH * c.lattice), 0.0)
             kappa[i] = alpha[i] * excess / (dt * dt)
@@ -373,7 +378,7 @@ def density_kappa_pass(position: T, velocity: T, number_density: T, target: T, n
 
 
 @ti.func
-def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac: T, lay: T, img: T, img_g: T,
+def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac: T, lay: T, rows: T, img: T, img_g: T,
                img_span: T, kappa: T, total: T, wall_grad: T, dt: ti.f32, ftab: T, go: T):
     """Equation (1) with this sweep's kappa; total += kappa (the step's pressure, and the next
     step's warm start). The walls' images j' carry kappa_j. The pairs are summed alternately
@@ -384,14 +389,15 @@ def apply_pass(position: T, velocity: T, fluid: T, near: T, near_count: T, gfac:
             ki = kappa[i]
             push = ki * wall_grad[i]
             base = i * lay.x
+            step = list_step(lay, rows)
             n = near_count[i]
             p0, p1 = vec3(0.0), vec3(0.0)
             for q in range(n // 2):
-                e = base + 2 * q * lay.y
+                e = base + 2 * q * step
                 p0 += push_term(xi, ki, e, near, position, kappa, gfac)
-                p1 += push_term(xi, ki, e + lay.y, near, position, kappa, gfac)
+                p1 += push_term(xi, ki, e + step, near, position, kappa, gfac)
             if n % 2 == 1:
-                push += push_term(xi, ki, base + (n - 1) * lay.y, near, position, kappa, gfac)
+                push += push_term(xi, ki, base + (n - 1) * step, near, position, kappa, gfac)
             push = image_terms(push + (p0 + p1), i, img, img_g, img_span, kappa, ki, False)
             velocity[i] -= dt / ftab[fluid[i], F_MASS] * push
             total[i] += ki
@@ -416,25 +422,26 @@ def k_warm_start(velocity: V3, fluid: I1, total: F1, warm_push: V3, dt: ti.f32, 
 
 @ti.kernel
 def k_divergence_kappa(position: V3, velocity: V3, number_density: F1, target: F1, near: I1, near_count: I1,
-                       gfac: F1, lay: ivec2, img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3, kappa: F1,
-                       residual: F1, dt: ti.f32):
-    divergence_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, img, img_g,
+                       gfac: F1, lay: ivec2, rows: ti.template(), img: I1, img_g: V3, img_span: IV2, alpha: F1,
+                       wall_grad: V3, kappa: F1, residual: F1, dt: ti.f32):
+    divergence_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, rows, img, img_g,
                           img_span, alpha, wall_grad, kappa, residual, dt, None)
 
 
 @ti.kernel
 def k_density_kappa(position: V3, velocity: V3, number_density: F1, target: F1, near: I1, near_count: I1, gfac: F1,
-                    lay: ivec2, img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3, kappa: F1, residual: F1,
-                    dt: ti.f32, prm: F1):
-    density_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, img, img_g, img_span,
-                       alpha, wall_grad, kappa, residual, dt, prm, None)
+                    lay: ivec2, rows: ti.template(), img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3,
+                    kappa: F1, residual: F1, dt: ti.f32, prm: F1):
+    density_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, rows, img, img_g,
+                       img_span, alpha, wall_grad, kappa, residual, dt, prm, None)
 
 
 @ti.kernel
-def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2, img: I1,
+def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
+                  rows: ti.template(), img: I1,
                   img_g: V3, img_span: IV2, kappa: F1, total: F1, wall_grad: V3, dt: ti.f32, ftab: F2):
-    apply_pass(position, velocity, fluid, near, near_count, gfac, lay, img, img_g, img_span, kappa, total, wall_grad,
-               dt, ftab, None)
+    apply_pass(position, velocity, fluid, near, near_count, gfac, lay, rows, img, img_g, img_span, kappa, total,
+               wall_grad, dt, ftab, None)
 
 
 @ti.kernel
@@ -456,7 +463,8 @@ DIVERGENCE, DENSITY = 0, 1
 
 @ti.kernel
 def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, target: F1, near: I1, near_count: I1,
-             gfac: F1, lay: ivec2, img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3, kappa: F1, total: F1,
+             gfac: F1, lay: ivec2, rows: ti.template(), img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3,
+             kappa: F1, total: F1,
              warm_push: V3, residual: F1, partial: F1, groups: D1, dt: ti.f32, warm: ti.f32, prm: F1, ftab: F2, go: D1,
              bound: ti.f64, norm: ti.f64, min_iterations: ti.i32, max_iterations: ti.i32, solve: ti.template(),
              warm_start: ti.template(), count: ti.template()):
@@ -472,14 +480,14 @@ def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, target: 
         warm_start_pass(velocity, fluid, total, warm_push, dt, warm, ftab)
     for _sweep in ti.static(range(count)):
         if ti.static(solve == DIVERGENCE):
-            divergence_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, img,
+            divergence_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, rows, img,
                                   img_g, img_span, alpha, wall_grad, kappa, residual, dt, go)
         else:
-            density_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, img, img_g,
-                               img_span, alpha, wall_grad, kappa, residual, dt, prm, go)
+            density_kappa_pass(position, velocity, number_density, target, near, near_count, gfac, lay, rows, img,
+                               img_g, img_span, alpha, wall_grad, kappa, residual, dt, prm, go)
         chunk_sums_pass(residual, partial, go)
         s = total_pass(partial, groups, go)
-        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, img, img_g, img_span, kappa, total,
+        apply_pass(position, velocity, fluid, near, near_count, gfac, lay, rows, img, img_g, img_span, kappa, total,
                    wall_grad, dt, ftab, go)
         if go[DONE] < 0.5:
             go[ITER] += 1.0
@@ -490,7 +498,8 @@ def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, target: 
 
 @ti.kernel
 def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
-                  near: I1, near_count: I1, gfac: F1, lay: ivec2, img: I1, img_g: V3, img_span: IV2, prm: F1,
+                  near: I1, near_count: I1, gfac: F1, lay: ivec2, rows: ti.template(), img: I1, img_g: V3,
+                  img_span: IV2, prm: F1,
                   ftab: F2, stats: F1, dt_guess: ti.f32, normal: V3, viscous: V3, wall_visc: F1, wall_grad: V3,
                   warm_kappa: F1, warm_push: V3, kern: ti.template(), tension: ti.template(), terms: ti.template()):
     """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
@@ -529,19 +538,20 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
         ki = warm_kappa[i]
         push = ki * wall_grad[i]
         base = i * lay.x
+        step = list_step(lay, rows)
         for m in range(near_count[i]):
-            j = near[base + m * lay.y]
+            j = near[base + m * step]
             rv = xi - position[j]
             r = rv.norm()
             dj = number_density[j]
             fj = fluid[j]
-            push += (ki + warm_kappa[j]) * gfac[base + m * lay.y] * rv
+            push += (ki + warm_kappa[j]) * gfac[base + m * step] * rv
             if ti.static(terms & MU_TERM):
                 mu = 0.5 * (ftab[fi, F_MU] + ftab[fj, F_MU])
                 a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
             if ti.static(terms & ETA_TERM):
                 # Morris's pair term (wcsph.morris) with x_ij . grad W_ij = gfac r^2 from the density pass
-                a_eta += ((ftab[fi, F_ETA] + ftab[fj, F_ETA]) / dj * gfac[base + m * lay.y] * r * r
+                a_eta += ((ftab[fi, F_ETA] + ftab[fj, F_ETA]) / dj * gfac[base + m * step] * r * r
                           / (r * r + 0.01 * h * h) * (vi - velocity[j]))
             if ti.static(terms & XSPH_TERM):
                 smooth += (velocity[j] - vi) * K.w(kern, r, h) / dj
@@ -604,8 +614,8 @@ def cohesion(r: ti.f32, h: ti.f32) -> ti.f32:
 
 
 @ti.kernel
-def k_surface_normals(position: V3, number_density: F1, near: I1, near_count: I1, lay: ivec2, img: I1, img_g: V3,
-                      img_span: IV2, normal: V3, prm: F1, kern: ti.template()):
+def k_surface_normals(position: V3, number_density: F1, near: I1, near_count: I1, lay: ivec2, rows: ti.template(),
+                      img: I1, img_g: V3, img_span: IV2, normal: V3, prm: F1, kern: ti.template()):
     """Akinci et al. 2013's surface normal n_i = h sum_j grad W_ij / delta_j (0 inside), the
     walls' images j' of i and its neighbours included (k_density_factor's list): a wall is no
     surface."""
@@ -614,8 +624,9 @@ def k_surface_normals(position: V3, number_density: F1, near: I1, near_count: I1
         xi = position[i]
         n = vec3(0.0)
         base = i * lay.x
+        step = list_step(lay, rows)
         for m in range(near_count[i]):
-            j = near[base + m * lay.y]
+            j = near[base + m * step]
             rv = xi - position[j]
             n += K.grad_w(kern, rv, rv.norm(), h) / number_density[j]
         span = img_span[i]
@@ -774,7 +785,8 @@ class DFSPHSolver(SPHSolver):
     def _density_factor(self) -> None:
         k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.target,
                          self.wall_grad, self.verlet, self.verlet_count, self.near, self.near_count, self.gfac,
-                         self.lay, *self.images, self.img_top, self.prm, self.ftab, self.ghost_t, self.ghost_g,
+                         self.lay, self.rows, *self.images, self.img_top, self.prm, self.ftab, self.ghost_t,
+                         self.ghost_g,
                          self.visc_t, self.wall_visc, self.ctype, self.cprm, self.sdf, *self.params.surface_deficit,
                          self.kappa_divergence, self.warm_push, self.kern)
 
@@ -810,7 +822,8 @@ class DFSPHSolver(SPHSolver):
         past the end about 0.25 ms)."""
         def sweeps(warm_start: bool, count: int) -> None:
             k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.target, self.near,
-                     self.near_count, self.gfac, self.lay, *self.images, self.alpha, self.wall_grad, self.kappa, total,
+                     self.near_count, self.gfac, self.lay, self.rows, *self.images, self.alpha, self.wall_grad,
+                     self.kappa, total,
                      self.warm_push, self.residual, self._summer.partial, self._summer.groups, dt, warm_scale,
                      self.prm, self.ftab, self.sweep_ctl, bound, self.n * self.params.lattice_density,
                      min_iterations, self.max_iterations, solve, warm_start, count)
@@ -833,16 +846,16 @@ class DFSPHSolver(SPHSolver):
         """This sweep's kappa and residual (one launch)."""
         if solve == DIVERGENCE:
             k_divergence_kappa(self.position, self.velocity, self.number_density, self.target, self.near,
-                               self.near_count, self.gfac, self.lay, *self.images, self.alpha, self.wall_grad,
-                               self.kappa, self.residual, dt)
+                               self.near_count, self.gfac, self.lay, self.rows, *self.images, self.alpha,
+                               self.wall_grad, self.kappa, self.residual, dt)
         else:
             k_density_kappa(self.position, self.velocity, self.number_density, self.target, self.near,
-                            self.near_count, self.gfac, self.lay, *self.images, self.alpha, self.wall_grad, self.kappa,
-                            self.residual, dt, self.prm)
+                            self.near_count, self.gfac, self.lay, self.rows, *self.images, self.alpha,
+                            self.wall_grad, self.kappa, self.residual, dt, self.prm)
 
     def _apply(self, kappa, total, dt: float) -> None:
         k_apply_kappa(self.position, self.velocity, self.fluid, self.near, self.near_count, self.gfac, self.lay,
-                      *self.images, kappa, total, self.wall_grad, dt, self.ftab)
+                      self.rows, *self.images, kappa, total, self.wall_grad, dt, self.ftab)
 
     def divergence_solve(self, dt: float) -> None:
         """Make the velocity field divergence-free where it compresses (step 2)."""
@@ -867,10 +880,10 @@ class DFSPHSolver(SPHSolver):
         guess = self.dt_prev or self.params.max_dt
         mode = (AKINCI if self.params.surface_tension_model == "akinci" else MUELLER) if self.tension else 0
         if mode == AKINCI:
-            k_surface_normals(self.position, self.number_density, self.near, self.near_count, self.lay,
+            k_surface_normals(self.position, self.number_density, self.near, self.near_count, self.lay, self.rows,
                               *self.images, self.normal, self.prm, self.kern)
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
-                      self.density, self.near, self.near_count, self.gfac, self.lay, *self.images, self.prm,
+                      self.density, self.near, self.near_count, self.gfac, self.lay, self.rows, *self.images, self.prm,
                       self.ftab, self.stats, guess, self.normal, self.viscous, self.wall_visc, self.wall_grad,
                       self.kappa_density, self.warm_push, self.kern, mode, self.viscous_terms)
         self.vmax, self.vmax_lone = (float(v) for v in self.read(self.stats))
@@ -885,7 +898,8 @@ class DFSPHSolver(SPHSolver):
         if self.implicit is None:
             self.implicit = ImplicitViscosity(self.n)
         it, res = self.implicit.solve(self.position, self.velocity, self.fluid, self.number_density, self.near,
-                                      self.near_count, self.gfac, self.lay, self.ftab, self.wall_visc, dt, self.h)
+                                      self.near_count, self.gfac, self.lay, self.rows, self.ftab, self.wall_visc, dt,
+                                      self.h)
         self.counters["viscosity_steps"] += 1
         self.counters["viscosity_iterations"] += it
         self.counters["viscosity_residual"] = max(self.counters["viscosity_residual"], res)

@@ -32,6 +32,20 @@ SKIN = 0.2
 
 
 @ti.func
+def list_step(lay, rows: ti.template()):
+    """The step between a particle's list entries i * lay.x + m * lay.y (SPHSolver.lay): with
+    `rows` (each particle's list a row: the CPU's layout) the constant 1, so that the passes'
+    loops over a list compile with the entries side by side; else lay.y. With lay.y read at run
+    time, LLVM vectorised the sweeps' loops with each entry's address computed apart, and 1
+    known to the compiler made the DFSPH passes 4-8 % faster (bench/RESULTS.md, forty-first
+    session)."""
+    step = lay.y
+    if ti.static(rows):
+        step = 1
+    return step
+
+
+@ti.func
 def cell_of(p, origin, inv_cell: ti.f32, dims):
     c = ti.cast(ti.floor((p - origin) * inv_cell), ti.i32)
     return ti.math.clamp(c, 0, dims - 1)
@@ -199,18 +213,20 @@ def k_gather(order: I1, position: V3, ref: V3, velocity: V3, acceleration: V3, f
 
 
 @ti.kernel
-def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, reach: ti.f32,
+def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, rows: ti.template(), reach: ti.f32,
                  start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3, longest: D1, at: ti.i32,
                  group: ti.template()):
-    list_pass(ref, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest, at, group)
+    list_pass(ref, verlet, verlet_count, cap, lay, rows, reach, start, count, origin, inv_cell, dims, longest, at,
+              group)
 
 
 @ti.func
 def list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.template(), cap: ti.i32,
-              lay: ti.template(), reach: ti.f32, start: ti.template(), count: ti.template(), origin: ti.template(),
+              lay: ti.template(), rows: ti.template(), reach: ti.f32, start: ti.template(), count: ti.template(),
+              origin: ti.template(),
               inv_cell: ti.f32, dims: ti.template(), longest: ti.template(), at: ti.i32, group: ti.template()):
     """Verlet lists: every j != i within `reach` (= h + skin) of i, at the reference positions,
-    in grid order, entry m at verlet[i * lay.x + m * lay.y] (see SPHSolver.lay). A particle with
+    in grid order, entry m at verlet[i * lay.x + m * lay.y] (see SPHSolver.lay; list_step). A particle with
     more than `cap` raises longest[at] to its count (longest[at] starts at 0 here), and the
     lists are built again larger. The candidate loop has no branch: in a
     disordered fluid, whether a candidate is a neighbour is a coin toss that a branch
@@ -218,15 +234,16 @@ def list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.templa
     for the same sort."""
     longest[at] = 0.0
     if ti.static(group > 1):
-        grouped_list_pass(ref, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest,
-                          at, group)
+        grouped_list_pass(ref, verlet, verlet_count, cap, lay, rows, reach, start, count, origin, inv_cell, dims,
+                          longest, at, group)
     else:
-        cell_list_pass(ref, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest, at)
+        cell_list_pass(ref, verlet, verlet_count, cap, lay, rows, reach, start, count, origin, inv_cell, dims,
+                       longest, at)
 
 
 @ti.func
 def cell_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.template(), cap: ti.i32,
-                   lay: ti.template(), reach: ti.f32, start: ti.template(), count: ti.template(),
+                   lay: ti.template(), rows: ti.template(), reach: ti.f32, start: ti.template(), count: ti.template(),
                    origin: ti.template(), inv_cell: ti.f32, dims: ti.template(), longest: ti.template(), at: ti.i32):
     """list_pass a particle at a time, over the CELL_DIV-wide cells' 5 x 5 rows."""
     for i in ref:
@@ -234,6 +251,7 @@ def cell_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.t
         ci = cell_of(xi, origin, inv_cell, dims)
         m = 0
         base = i * lay.x
+        step = list_step(lay, rows)
         for dz, dy in ti.ndrange((-CELL_DIV, CELL_DIV + 1), (-CELL_DIV, CELL_DIV + 1)):
             cy, cz = ci.y + dy, ci.z + dz
             if 0 <= cy < dims.y and 0 <= cz < dims.z:
@@ -244,7 +262,7 @@ def cell_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.t
                 c1 = flat(ivec3(x1, cy, cz), dims)
                 for j in range(start[c0], start[c1] + count[c1]):
                     r2 = (xi - ref[j]).norm_sqr()
-                    verlet[base + ti.min(m, cap - 1) * lay.y] = j
+                    verlet[base + ti.min(m, cap - 1) * step] = j
                     m += ti.select((r2 < reach * reach) & (j != i), 1, 0)
         verlet_count[i] = ti.min(m, cap)
         if m > cap:
@@ -253,7 +271,8 @@ def cell_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.t
 
 @ti.func
 def grouped_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.template(), cap: ti.i32,
-                      lay: ti.template(), reach: ti.f32, start: ti.template(), count: ti.template(),
+                      lay: ti.template(), rows: ti.template(), reach: ti.f32, start: ti.template(),
+                      count: ti.template(),
                       origin: ti.template(), inv_cell: ti.f32, dims: ti.template(), longest: ti.template(),
                       at: ti.i32, group: ti.template()):
     """list_pass over cells `reach` wide, `group` particles of a cell at a time: the thread of a
@@ -269,6 +288,7 @@ def grouped_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: t
         c = flat(ci, dims)
         s0 = start[c]
         if (i - s0) % group == 0:
+            step = list_step(lay, rows)
             g = ti.min(group, s0 + count[c] - i)
             xs = ti.Matrix.zero(ti.f32, group, 3)
             m = ti.Vector.zero(ti.i32, group)         # each member's neighbours so far
@@ -281,7 +301,7 @@ def grouped_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: t
                     xp, k = ref[i + p], i + p
                 for d in ti.static(range(3)):
                     xs[p, d] = xp[d]
-                end[p] = k * lay.x + (cap - 1) * lay.y
+                end[p] = k * lay.x + (cap - 1) * step
                 addr[p] = ti.select(p < g, k * lay.x, end[p])
             for dz, dy in ti.ndrange((-1, 2), (-1, 2)):
                 cy, cz = ci.y + dy, ci.z + dz
@@ -295,7 +315,7 @@ def grouped_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: t
                             verlet[addr[p]] = j
                             inside = (r2 < reach * reach) & (j != i + p)
                             m[p] += ti.select(inside, 1, 0)
-                            addr[p] = ti.min(addr[p] + ti.select(inside, lay.y, 0), end[p])
+                            addr[p] = ti.min(addr[p] + ti.select(inside, step, 0), end[p])
             for p in ti.static(range(group)):
                 if p < g:
                     verlet_count[i + p] = ti.min(m[p], cap - 1)
@@ -308,7 +328,7 @@ def grouped_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: t
 def k_rebuild(position: V3, ref: V3, velocity: V3, acceleration: V3, fluid: I1, id: I1,
               position_o: V3, ref_o: V3, velocity_o: V3, acceleration_o: V3, fluid_o: I1, id_o: I1,
               cell: I1, count: I1, fill: I1, start: I1, order: I1, sums: I1, sums2: I1,
-              verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, reach: ti.f32,
+              verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, rows: ti.template(), reach: ti.f32,
               origin: vec3, inv_cell: ti.f32, dims: ivec3, longest: D1, at: ti.i32, n: ti.i32, nb: ti.i32,
               nb2: ti.i32, from_position: ti.template(), group: ti.template()):
     """The sort and the lists of SPHSolver.build_lists in one launch (its loops run in order on
@@ -331,7 +351,8 @@ def k_rebuild(position: V3, ref: V3, velocity: V3, acceleration: V3, fluid: I1, 
     sort_runs_pass(start, count, order)
     gather_pass(order, position, source, velocity, acceleration, fluid, id,
                 position_o, ref_o, velocity_o, acceleration_o, fluid_o, id_o)
-    list_pass(ref_o, verlet, verlet_count, cap, lay, reach, start, count, origin, inv_cell, dims, longest, at, group)
+    list_pass(ref_o, verlet, verlet_count, cap, lay, rows, reach, start, count, origin, inv_cell, dims, longest, at,
+              group)
 
 
 @ti.kernel

@@ -173,7 +173,7 @@ class SPHSolver:
             k_rebuild(self.position, self.ref, self.velocity, self.acceleration, self.fluid, self.id,
                       self.position_b, self.ref_b, self.velocity_b, self.acceleration_b, self.fluid_b, self.id_b,
                       self.cell, self.count, self.fill, self.start, self.order, *sums,
-                      self.verlet, self.verlet_count, self.nb_cap, self.lay, self.h + self.skin, self.origin,
+                      self.verlet, self.verlet_count, self.nb_cap, self.lay, self.rows, self.h + self.skin, self.origin,
                       self.inv_cell, self.dims, self.ctl, clock.OVERFLOW, self.n_cells,
                       *(a.shape[0] for a in sums), from_position, self.list_group)
             self._swap_sorted()
@@ -206,7 +206,8 @@ class SPHSolver:
     def list_pairs(self) -> None:
         """The Verlet lists at the sorted reference positions; a list longer than the room
         leaves its length in the controller's OVERFLOW, which keeps the step gate closed."""
-        k_neighbours(self.ref, self.verlet, self.verlet_count, self.nb_cap, self.lay, self.h + self.skin, self.start,
+        k_neighbours(self.ref, self.verlet, self.verlet_count, self.nb_cap, self.lay, self.rows, self.h + self.skin,
+                     self.start,
                      self.count, self.origin, self.inv_cell, self.dims, self.ctl, clock.OVERFLOW, self.list_group)
 
     def read(self, a, k: int | None = None):
@@ -269,6 +270,7 @@ class SPHSolver:
         # a warp read entry m of 32 particles from one memory line: coalesced loads)
         interleave = (not self.on_cpu) if self.INTERLEAVED_LISTS is None else self.INTERLEAVED_LISTS
         self.lay = ivec2(1, self.n) if interleave else ivec2(cap, 1)
+        self.rows = not interleave         # the kernels' compile-time flag for it (neighbours.list_step)
         self.verlet = ti.ndarray(ti.i32, max(self.n * cap, 1))     # within h + skin at `ref`
         self.verlet_count = ti.ndarray(ti.i32, self.n)
         self.near = ti.ndarray(ti.i32, max(self.n * cap, 1))      # within h now (a subset)
@@ -276,7 +278,7 @@ class SPHSolver:
 
     def compute_density(self, gate=None) -> None:
         k_density(self.position, self.fluid, self.number_density, self.density, self.pressure,
-                  self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
+                  self.verlet, self.verlet_count, self.near, self.near_count, self.lay, self.rows,
                   self.prm, self.ftab, self.ghost_t, self.ghost_g,
                   self.ctype, self.cprm, self.sdf, self.open_gate if gate is None else gate,
                   self.params.density_kind)
@@ -289,7 +291,7 @@ class SPHSolver:
         minutes on one frame -- or flings particles apart): the controller says UNSTABLE and
         pull_clock raises."""
         k_forces(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
-                 self.density, self.pressure, self.near, self.near_count, self.lay,
+                 self.density, self.pressure, self.near, self.near_count, self.lay, self.rows,
                  self.prm, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom,
                  self.ctype, self.cprm, self.sdf, self.stats, self.ctl, self.params.pressure_kind, self.tension)
 
@@ -335,6 +337,7 @@ class SPHSolver:
         """One gated step in one launch (wcsph.k_step)."""
         k_step(self.position, self.velocity, self.acceleration, self.ref, self.fluid, self.number_density,
                self.density, self.pressure, self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
+               self.rows,
                self.prm, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom, self.ctype, self.cprm, self.sdf,
                self.stats, self.ctl, 0.5 * self.skin, self.params.density_kind, self.params.pressure_kind,
                self.tension)

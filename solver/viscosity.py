@@ -26,6 +26,7 @@ import math
 
 import taichi as ti
 
+from .neighbours import list_step
 from .params import F_ETA, F_MASS
 from .sums import Summer
 from .types import F1, F2, I1, V3, ivec2
@@ -40,8 +41,8 @@ def weight(eta: ti.f32, di: ti.f32, dj: ti.f32, f: ti.f32, r2: ti.f32, h: ti.f32
 
 @ti.kernel
 def k_first_residual(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1, near_count: I1,
-                     gfac: F1, lay: ivec2, ftab: F2, wall: F1, dt: ti.f32, h: ti.f32, diag: F1, res: V3,
-                     direction: V3, rr: F1, rz: F1):
+                     gfac: F1, lay: ivec2, rows: ti.template(), ftab: F2, wall: F1, dt: ti.f32, h: ti.f32, diag: F1,
+                     res: V3, direction: V3, rr: F1, rz: F1):
     """From x0 = v*: r = M v* - A v* = -dt L v*, the diagonal of A, the first direction z = r / diag,
     and per particle r.r and r.z."""
     for i in position:
@@ -50,9 +51,10 @@ def k_first_residual(position: V3, velocity: V3, fluid: I1, number_density: F1, 
         wsum = wall[i]              # the walls: neighbours at rest
         lv = wsum * vi
         base = i * lay.x
+        step = list_step(lay, rows)
         for m in range(near_count[i]):
-            j = near[base + m * lay.y]
-            w = weight(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], di, number_density[j], gfac[base + m * lay.y],
+            j = near[base + m * step]
+            w = weight(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], di, number_density[j], gfac[base + m * step],
                        (xi - position[j]).norm_sqr(), h)
             wsum += w
             lv += w * (vi - velocity[j])
@@ -67,16 +69,17 @@ def k_first_residual(position: V3, velocity: V3, fluid: I1, number_density: F1, 
 
 @ti.kernel
 def k_product(position: V3, fluid: I1, number_density: F1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
-              ftab: F2, wall: F1, dt: ti.f32, h: ti.f32, p: V3, ap: V3, pap: F1):
+              rows: ti.template(), ftab: F2, wall: F1, dt: ti.f32, h: ti.f32, p: V3, ap: V3, pap: F1):
     """ap = A p and per particle p . A p."""
     for i in position:
         xi, pi = position[i], p[i]
         fi, di = fluid[i], number_density[i]
         lp = wall[i] * pi
         base = i * lay.x
+        step = list_step(lay, rows)
         for m in range(near_count[i]):
-            j = near[base + m * lay.y]
-            w = weight(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], di, number_density[j], gfac[base + m * lay.y],
+            j = near[base + m * step]
+            w = weight(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], di, number_density[j], gfac[base + m * step],
                        (xi - position[j]).norm_sqr(), h)
             lp += w * (pi - p[j])
         a = ftab[fi, F_MASS] * pi + dt * lp
@@ -112,18 +115,18 @@ class ImplicitViscosity:
         summer = Summer(n)
         self._sum, self._sums = summer.total, summer.totals
 
-    def solve(self, position, velocity, fluid, number_density, near, near_count, gfac, lay, ftab, wall, dt: float,
+    def solve(self, position, velocity, fluid, number_density, near, near_count, gfac, lay, rows, ftab, wall, dt: float,
               h: float) -> tuple[int, float]:
         """Replace `velocity` (v*) by the solution of A v = M v*. Returns (iterations, the final
         residual relative to the first)."""
-        k_first_residual(position, velocity, fluid, number_density, near, near_count, gfac, lay, ftab, wall, dt, h,
-                         self.diag, self.res, self.p, self.rr, self.rz)
+        k_first_residual(position, velocity, fluid, number_density, near, near_count, gfac, lay, rows, ftab, wall,
+                         dt, h, self.diag, self.res, self.p, self.rr, self.rz)
         rr0, rz = self._sums(self.rr, self.rz)
         if rr0 <= 0.0:
             return 0, 0.0
         rr, iterations = rr0, 0
         while iterations < self.max_iterations and rr > self.tolerance ** 2 * rr0:
-            k_product(position, fluid, number_density, near, near_count, gfac, lay, ftab, wall, dt, h, self.p,
+            k_product(position, fluid, number_density, near, near_count, gfac, lay, rows, ftab, wall, dt, h, self.p,
                       self.ap, self.rr)
             pap = self._sum(self.rr)
             if not pap > 0.0:       # round-off at convergence, or a broken matrix: stop where we are

@@ -23,6 +23,7 @@ from .boundaries import (boundary_sums, collide_one, collider_sdf, domain_walls,
                          table3)
 from .clock import (AMAX, CAP, CFL_HS, DT, GO, HS, KICK, MIN_DT, MOVED, SOUND, UNSTABLE, VMAX, end_step,
                     gate_open, land_on_target)
+from .neighbours import list_step
 from .params import F_B, F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA
 from .types import D1, F1, F2, F4, I1, P_H, V3, T, box_of, consts_of, ivec2, raise_max, vec3
 
@@ -47,7 +48,7 @@ def color_tension(sigma: ti.f32, n, lap: ti.f32, rho: ti.f32, h: ti.f32, thresho
 
 @ti.func
 def density_pass(position: T, fluid: T, number_density: T, density: T, pressure: T, verlet: T,
-                 verlet_count: T, near: T, near_count: T, lay: T, prm: T, ftab: T, ghost_t: T, ghost_g: T,
+                 verlet_count: T, near: T, near_count: T, lay: T, rows: T, prm: T, ftab: T, ghost_t: T, ghost_g: T,
                  ctype: T, cprm: T, sdf: T, ctl: T, dkern: T):
     """Density and pressure from the Verlet list; also copies the entries now within h (and not
     coincident) into the exact list `near` that the force pass reads, without branching.
@@ -59,12 +60,13 @@ def density_pass(position: T, fluid: T, number_density: T, density: T, pressure:
             xi = position[i]
             s = K.w_r2(dkern, 0.0, h)                 # the particle itself
             base = i * lay.x
+            step = list_step(lay, rows)
             k = 0
             for m in range(verlet_count[i]):
-                j = verlet[base + m * lay.y]
+                j = verlet[base + m * step]
                 r2 = (xi - position[j]).norm_sqr()
                 s += K.w_r2(dkern, r2, h)
-                near[base + k * lay.y] = j
+                near[base + k * step] = j
                 k += ti.select((r2 < h * h) & (r2 > 1e-18), 1, 0)
             near_count[i] = k
             # walls: the domain's six planes and the colliders, as boundary samples on the fill
@@ -82,7 +84,7 @@ def density_pass(position: T, fluid: T, number_density: T, density: T, pressure:
 
 @ti.func
 def forces_pass(position: T, velocity: T, acceleration: T, fluid: T, number_density: T, density: T,
-                pressure: T, near: T, near_count: T, lay: T, prm: T, ftab: T, ghost_t: T, ghost_g: T,
+                pressure: T, near: T, near_count: T, lay: T, rows: T, prm: T, ftab: T, ghost_t: T, ghost_g: T,
                 ghost_mom: T, ctype: T, cprm: T, sdf: T, stats: T, ctl: T, pkern: T,
                 tension: T):
     """Accelerations (pressure, viscosity, surface tension, gravity, walls), then the step length
@@ -105,8 +107,9 @@ def forces_pass(position: T, velocity: T, acceleration: T, fluid: T, number_dens
             n = vec3(0.0)
             lap = K.lap_poly6(0.0, h) / di      # color field includes the particle itself
             base = i * lay.x
+            step = list_step(lay, rows)
             for m in range(near_count[i]):        # the pairs within h (see k_density)
-                j = near[base + m * lay.y]
+                j = near[base + m * step]
                 rv = xi - position[j]
                 r = ti.sqrt(rv.norm_sqr())
                 dj = number_density[j]
@@ -199,21 +202,21 @@ def advance_pass(position: T, velocity: T, acceleration: T, ref: T, limit: ti.f3
 # compile superlinearly (on the CPU 14 s for one step, 47 s for two).
 @ti.kernel
 def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure: F1,
-              verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
+              verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2, rows: ti.template(),
               prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4,
               ctype: I1, cprm: F2, sdf: F1, ctl: D1, dkern: ti.template()):
     density_pass(position, fluid, number_density, density, pressure, verlet, verlet_count, near, near_count,
-                 lay, prm, ftab, ghost_t, ghost_g, ctype, cprm, sdf, ctl, dkern)
+                 lay, rows, prm, ftab, ghost_t, ghost_g, ctype, cprm, sdf, ctl, dkern)
 
 
 @ti.kernel
 def k_forces(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1,
-             density: F1, pressure: F1, near: I1, near_count: I1, lay: ivec2,
+             density: F1, pressure: F1, near: I1, near_count: I1, lay: ivec2, rows: ti.template(),
              prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2,
              ctype: I1, cprm: F2, sdf: F1, stats: F1, ctl: D1, pkern: ti.template(),
              tension: ti.template()):
     forces_pass(position, velocity, acceleration, fluid, number_density, density, pressure, near, near_count,
-                lay, prm, ftab, ghost_t, ghost_g, ghost_mom, ctype, cprm, sdf, stats, ctl, pkern, tension)
+                lay, rows, prm, ftab, ghost_t, ghost_g, ghost_mom, ctype, cprm, sdf, stats, ctl, pkern, tension)
 
 
 @ti.kernel
@@ -225,14 +228,15 @@ def k_advance(position: V3, velocity: V3, acceleration: V3, ref: V3, limit: ti.f
 @ti.kernel
 def k_step(position: V3, velocity: V3, acceleration: V3, ref: V3, fluid: I1, number_density: F1,
            density: F1, pressure: F1, verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
+           rows: ti.template(),
            prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2, ctype: I1, cprm: F2, sdf: F1,
            stats: F1, ctl: D1, limit: ti.f32, dkern: ti.template(), pkern: ti.template(),
            tension: ti.template()):
     """One gated step: density, forces (and the step length), advance."""
     density_pass(position, fluid, number_density, density, pressure, verlet, verlet_count, near,
-                 near_count, lay, prm, ftab, ghost_t, ghost_g, ctype, cprm, sdf, ctl, dkern)
+                 near_count, lay, rows, prm, ftab, ghost_t, ghost_g, ctype, cprm, sdf, ctl, dkern)
     forces_pass(position, velocity, acceleration, fluid, number_density, density, pressure, near,
-                near_count, lay, prm, ftab, ghost_t, ghost_g, ghost_mom, ctype, cprm, sdf, stats, ctl,
+                near_count, lay, rows, prm, ftab, ghost_t, ghost_g, ghost_mom, ctype, cprm, sdf, stats, ctl,
                 pkern, tension)
     advance_pass(position, velocity, acceleration, ref, limit, prm, ctype, cprm, sdf, ctl)
 

@@ -693,8 +693,8 @@ def test_the_factor_is_a_sweeps_exact_diagonal_where_the_neighbourhood_is_sparse
         unit[i] = 1.0
         kappa.from_numpy(unit)
         s.velocity.from_numpy(np.zeros((s.n, 3), np.float32))
-        k_apply_kappa(s.position, s.velocity, s.fluid, s.near, s.near_count, s.gfac, s.lay, *s.images, kappa,
-                      scratch, s.wall_grad, dt, s.ftab)
+        k_apply_kappa(s.position, s.velocity, s.fluid, s.near, s.near_count, s.gfac, s.lay, s.rows, *s.images,
+                      kappa, scratch, s.wall_grad, dt, s.ftab)
         answer = -rate(i, s.velocity.to_numpy().astype(np.float64)) / dt
         assert abs(answer * alpha[i] - 1.0) < 1e-3, \
             f"particle {i} ({nc[i]} neighbours, {span[i, 1]} images): 1 / alpha {1 / alpha[i]:.4g}, answer {answer:.4g}"
