@@ -22,7 +22,9 @@ CELL_DIV = 2
 # times the candidates. The list pass alone on bench/solver.py's dam break at 0.15 s (1.45 M
 # pairs, medians of 40): 12.1-12.6 ms as CELL_DIV = 2 lists, 5.3-6.3 ms grouped by 4, 14-17 ms by
 # 3, 5 or 6 (registers spilled, nothing packed); and the sort's passes over the cells run over 8
-# times fewer cells (bench/RESULTS.md, fortieth session).
+# times fewer cells (bench/RESULTS.md, fortieth session). On a 2-core AMD EPYC (Zen 4) the grouped
+# pass was the slower, 18-20 ms against 13.5-16.5, until the list step was a constant there
+# (list_step): then 6.5-8.1 ms against 14.6-15.2 (forty-first session).
 GROUP = 4
 FAR = 1e10     # m: where a group's missing members are tested from
 # Verlet-list skin, in units of h: lists hold pairs within h (1 + SKIN) and last until a particle
@@ -36,9 +38,9 @@ def list_step(lay, rows: ti.template()):
     """The step between a particle's list entries i * lay.x + m * lay.y (SPHSolver.lay): with
     `rows` (each particle's list a row: the CPU's layout) the constant 1, so that the passes'
     loops over a list compile with the entries side by side; else lay.y. With lay.y read at run
-    time, LLVM vectorised the sweeps' loops with each entry's address computed apart, and 1
-    known to the compiler made the DFSPH passes 4-8 % faster (bench/RESULTS.md, forty-first
-    session)."""
+    time, LLVM vectorised the passes' loops with each entry's address computed apart: 1 known to
+    the compiler made DFSPH's passes 3-10 % faster and the grouped list pass 2.5 times (2-core
+    AMD EPYC; bench/RESULTS.md, forty-first session)."""
     step = lay.y
     if ti.static(rows):
         step = 1
