@@ -129,10 +129,9 @@ SPEED_FLOOR = 0.25
 @ti.kernel
 def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, alpha: F1, target: F1,
                      wall_grad: V3, verlet: I1, verlet_count: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
-                     rows: ti.template(),
-                     img: I1, img_g: V3, img_span: IV2, img_top: I1, prm: F1, ftab: F2, ghost_t: F4,
-                     ghost_g: F4, visc_t: F2, wall_visc: F1, ctype: I1, cprm: F2, sdf: F1, surface_g: ti.f32,
-                     surface_d: ti.f32, warm_kappa: F1, warm_push: V3, kern: ti.template()):
+                     rows: ti.template(), img: I1, img_g: V3, img_span: IV2, img_top: I1, prm: F1, ftab: F2,
+                     ghost_t: F4, ghost_g: F4, visc_t: F2, wall_visc: F1, ctype: I1, cprm: F2, sdf: F1,
+                     surface_g: ti.f32, surface_d: ti.f32, warm_kappa: F1, warm_push: V3, kern: ti.template()):
     """Number density delta_i = sum_j W_ij + sum_b W_ib, density m_i delta_i and the factor
     alpha_i (a sweep's exact diagonal where the neighbourhood is sparse: module docstring), and
     the particle's target number density delta0 (1 - D_i) (SURFACE_FROM: D_i from how one-sided
@@ -438,8 +437,8 @@ def k_density_kappa(position: V3, velocity: V3, number_density: F1, target: F1, 
 
 @ti.kernel
 def k_apply_kappa(position: V3, velocity: V3, fluid: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
-                  rows: ti.template(), img: I1,
-                  img_g: V3, img_span: IV2, kappa: F1, total: F1, wall_grad: V3, dt: ti.f32, ftab: F2):
+                  rows: ti.template(), img: I1, img_g: V3, img_span: IV2, kappa: F1, total: F1, wall_grad: V3,
+                  dt: ti.f32, ftab: F2):
     apply_pass(position, velocity, fluid, near, near_count, gfac, lay, rows, img, img_g, img_span, kappa, total,
                wall_grad, dt, ftab, None)
 
@@ -464,10 +463,9 @@ DIVERGENCE, DENSITY = 0, 1
 @ti.kernel
 def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, target: F1, near: I1, near_count: I1,
              gfac: F1, lay: ivec2, rows: ti.template(), img: I1, img_g: V3, img_span: IV2, alpha: F1, wall_grad: V3,
-             kappa: F1, total: F1,
-             warm_push: V3, residual: F1, partial: F1, groups: D1, dt: ti.f32, warm: ti.f32, prm: F1, ftab: F2, go: D1,
-             bound: ti.f64, norm: ti.f64, min_iterations: ti.i32, max_iterations: ti.i32, solve: ti.template(),
-             warm_start: ti.template(), count: ti.template()):
+             kappa: F1, total: F1, warm_push: V3, residual: F1, partial: F1, groups: D1, dt: ti.f32, warm: ti.f32,
+             prm: F1, ftab: F2, go: D1, bound: ti.f64, norm: ti.f64, min_iterations: ti.i32, max_iterations: ti.i32,
+             solve: ti.template(), warm_start: ti.template(), count: ti.template()):
     """warm_start: first the warm start (total *= warm and applied: warm_start_pass; the
     controller reset); then `count` sweeps, each unless done as Bender & Koschier 2017's Algorithms 2 and 3
     (and SPlisHSPlasH) take it: this kappa and the mean error it removes, then kappa applied
@@ -499,9 +497,9 @@ def k_sweeps(position: V3, velocity: V3, fluid: I1, number_density: F1, target: 
 @ti.kernel
 def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
                   near: I1, near_count: I1, gfac: F1, lay: ivec2, rows: ti.template(), img: I1, img_g: V3,
-                  img_span: IV2, prm: F1,
-                  ftab: F2, stats: F1, dt_guess: ti.f32, normal: V3, viscous: V3, wall_visc: F1, wall_grad: V3,
-                  warm_kappa: F1, warm_push: V3, kern: ti.template(), tension: ti.template(), terms: ti.template()):
+                  img_span: IV2, prm: F1, ftab: F2, stats: F1, dt_guess: ti.f32, normal: V3, viscous: V3,
+                  wall_visc: F1, wall_grad: V3, warm_kappa: F1, warm_push: V3, kern: ti.template(),
+                  tension: ti.template(), terms: ti.template()):
     """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
     raised to the largest |v + a dt_guess| of particles with a neighbour (the CFL speed), stats[1]
     to that of particles with none (stable_dt). Morris's term goes to `viscous`,

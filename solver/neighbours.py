@@ -215,9 +215,9 @@ def k_gather(order: I1, position: V3, ref: V3, velocity: V3, acceleration: V3, f
 
 
 @ti.kernel
-def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, rows: ti.template(), reach: ti.f32,
-                 start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3, longest: D1, at: ti.i32,
-                 group: ti.template()):
+def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2, rows: ti.template(),
+                 reach: ti.f32, start: I1, count: I1, origin: vec3, inv_cell: ti.f32, dims: ivec3, longest: D1,
+                 at: ti.i32, group: ti.template()):
     list_pass(ref, verlet, verlet_count, cap, lay, rows, reach, start, count, origin, inv_cell, dims, longest, at,
               group)
 
@@ -225,12 +225,12 @@ def k_neighbours(ref: V3, verlet: I1, verlet_count: I1, cap: ti.i32, lay: ivec2,
 @ti.func
 def list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.template(), cap: ti.i32,
               lay: ti.template(), rows: ti.template(), reach: ti.f32, start: ti.template(), count: ti.template(),
-              origin: ti.template(),
-              inv_cell: ti.f32, dims: ti.template(), longest: ti.template(), at: ti.i32, group: ti.template()):
+              origin: ti.template(), inv_cell: ti.f32, dims: ti.template(), longest: ti.template(), at: ti.i32,
+              group: ti.template()):
     """Verlet lists: every j != i within `reach` (= h + skin) of i, at the reference positions,
-    in grid order, entry m at verlet[i * lay.x + m * lay.y] (see SPHSolver.lay; list_step). A particle with
-    more than `cap` raises longest[at] to its count (longest[at] starts at 0 here), and the
-    lists are built again larger. The candidate loop has no branch: in a
+    in grid order, entry m at verlet[i * lay.x + m * lay.y] (see SPHSolver.lay; list_step). A
+    particle with more than `cap` raises longest[at] to its count (longest[at] starts at 0 here),
+    and the lists are built again larger. The candidate loop has no branch: in a
     disordered fluid, whether a candidate is a neighbour is a coin toss that a branch
     predictor keeps losing. group > 1 (cells reach wide): grouped_list_pass, the same lists
     for the same sort."""
@@ -274,9 +274,8 @@ def cell_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.t
 @ti.func
 def grouped_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.template(), cap: ti.i32,
                       lay: ti.template(), rows: ti.template(), reach: ti.f32, start: ti.template(),
-                      count: ti.template(),
-                      origin: ti.template(), inv_cell: ti.f32, dims: ti.template(), longest: ti.template(),
-                      at: ti.i32, group: ti.template()):
+                      count: ti.template(), origin: ti.template(), inv_cell: ti.f32, dims: ti.template(),
+                      longest: ti.template(), at: ti.i32, group: ti.template()):
     """list_pass over cells `reach` wide, `group` particles of a cell at a time: the thread of a
     cell's particle k * group lists it and the next group - 1 of its cell against the 3 x 3 rows
     of 3 cells around their cell, each candidate read once and tested for each (each list holds

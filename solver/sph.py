@@ -207,8 +207,8 @@ class SPHSolver:
         """The Verlet lists at the sorted reference positions; a list longer than the room
         leaves its length in the controller's OVERFLOW, which keeps the step gate closed."""
         k_neighbours(self.ref, self.verlet, self.verlet_count, self.nb_cap, self.lay, self.rows, self.h + self.skin,
-                     self.start,
-                     self.count, self.origin, self.inv_cell, self.dims, self.ctl, clock.OVERFLOW, self.list_group)
+                     self.start, self.count, self.origin, self.inv_cell, self.dims, self.ctl, clock.OVERFLOW,
+                     self.list_group)
 
     def read(self, a, k: int | None = None):
         """The values of a small array (a controller, a count), or its element k, synced. On the
@@ -337,9 +337,8 @@ class SPHSolver:
         """One gated step in one launch (wcsph.k_step)."""
         k_step(self.position, self.velocity, self.acceleration, self.ref, self.fluid, self.number_density,
                self.density, self.pressure, self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
-               self.rows,
-               self.prm, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom, self.ctype, self.cprm, self.sdf,
-               self.stats, self.ctl, 0.5 * self.skin, self.params.density_kind, self.params.pressure_kind,
+               self.rows, self.prm, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom, self.ctype, self.cprm,
+               self.sdf, self.stats, self.ctl, 0.5 * self.skin, self.params.density_kind, self.params.pressure_kind,
                self.tension)
 
     def batch(self) -> int:
