@@ -784,9 +784,8 @@ class DFSPHSolver(SPHSolver):
         k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.target,
                          self.wall_grad, self.verlet, self.verlet_count, self.near, self.near_count, self.gfac,
                          self.lay, self.rows, *self.images, self.img_top, self.prm, self.ftab, self.ghost_t,
-                         self.ghost_g,
-                         self.visc_t, self.wall_visc, self.ctype, self.cprm, self.sdf, *self.params.surface_deficit,
-                         self.kappa_divergence, self.warm_push, self.kern)
+                         self.ghost_g, self.visc_t, self.wall_visc, self.ctype, self.cprm, self.sdf,
+                         *self.params.surface_deficit, self.kappa_divergence, self.warm_push, self.kern)
 
     def _solve(self, solve: int, total, warm_scale: float, bound: float, dt: float,
                min_iterations: int) -> tuple[int, float]:
@@ -821,9 +820,8 @@ class DFSPHSolver(SPHSolver):
         def sweeps(warm_start: bool, count: int) -> None:
             k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.target, self.near,
                      self.near_count, self.gfac, self.lay, self.rows, *self.images, self.alpha, self.wall_grad,
-                     self.kappa, total,
-                     self.warm_push, self.residual, self._summer.partial, self._summer.groups, dt, warm_scale,
-                     self.prm, self.ftab, self.sweep_ctl, bound, self.n * self.params.lattice_density,
+                     self.kappa, total, self.warm_push, self.residual, self._summer.partial, self._summer.groups, dt,
+                     warm_scale, self.prm, self.ftab, self.sweep_ctl, bound, self.n * self.params.lattice_density,
                      min_iterations, self.max_iterations, solve, warm_start, count)
 
         sweeps(True, min_iterations)
