@@ -2,9 +2,10 @@
 
 Figures per unit, measured (bench/RESULTS.md, eleventh session):
 - solver: about 1,000 bytes a particle on the compute device (973 WCSPH, 1,025 DFSPH on the
-  H200; the two neighbour lists are ~800 of it; DFSPH keeps one list since the thirteenth
-  session, 825 bytes on the CPU bench), plus host copies of the state for frames and
-  checkpoints: SIM_BYTES per particle in all (an upper bound for DFSPH now);
+  H200; the two neighbour lists are ~800 of it; DFSPH keeps one list on a GPU since the
+  thirteenth session, and two again on the CPU since the forty-second, a copy in narrower
+  rows: 246 MB peak resident for the CPU bench's 50,622 particles, 234 with one), plus host
+  copies of the state for frames and checkpoints: SIM_BYTES per particle in all;
 - surfacing: about 36 grid nodes a particle at the default 0.75 r cell (18.0M nodes for 502,606
   particles) and about 26 bytes a node at the peak (color, velocity band, marching cubes'
   arrays: 720 MB for the 500k frame with velocities, 250 MB of it Python and Taichi). A splash

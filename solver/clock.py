@@ -6,7 +6,7 @@ A run of steps is armed with a target time; every kernel of a step is gated on G
 nothing once it is 0. The last kernel of a step clears GO when the neighbour lists must be
 rebuilt (a particle moved skin/2 from where they were built) or the target time is reached; the
 step length clears it when the step has blown up; a list build that overflowed its room keeps
-it closed (OVERFLOW holds the longest list). The host launches a batch of gated
+it closed (OVERFLOW holds the longest list; LONGEST, the longest of any build). The host launches a batch of gated
 steps, reads the array once, and acts on what it says.
 """
 import taichi as ti
@@ -15,9 +15,10 @@ from .types import D1
 
 # entries of the controller array: the clock and the run's state, then the constants of the
 # step length (set once)
-TIME, DT_PREV, DT, KICK, TARGET, GO, MOVED, STEPS, UNSTABLE, VMAX, AMAX, OVERFLOW = range(12)
-CFL_HS, HS, SOUND, MIN_DT, CAP = range(12, 17)
-SIZE = 17
+# (the list passes write OVERFLOW and the slot after it, LONGEST: neighbours.list_pass)
+TIME, DT_PREV, DT, KICK, TARGET, GO, MOVED, STEPS, UNSTABLE, VMAX, AMAX, OVERFLOW, LONGEST = range(13)
+CFL_HS, HS, SOUND, MIN_DT, CAP = range(13, 18)
+SIZE = 18
 NEVER = 1e30       # the target of a step with no target time
 
 

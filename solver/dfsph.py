@@ -61,6 +61,7 @@ import math
 import numpy as np
 import taichi as ti
 
+from . import clock
 from . import kernels as K
 from .boundaries import boundary_sums, mirror_walls, reflect, reflect_velocity, wall_viscosity
 from .errors import Unstable
@@ -117,6 +118,13 @@ MUELLER, AKINCI = 1, 2          # surface tension models
 # Müller's mu, Morris's eta or XSPH skip that term's work per pair: on the example, water with
 # eta and XSPH but no mu, the pass's fastest run went from 2.0 to 1.6 ms)
 MU_TERM, ETA_TERM, XSPH_TERM = 1, 2, 4
+# On the CPU the passes after the density pass read `near` and `gfac` in rows as wide as the
+# longest list rounded up to this, not the Verlet lists' room (1.5 times a lattice's pairs,
+# grown by a quarter on overflow): on bench/solver.py's dam break at 0.15 s, rows of 44 where the
+# room is 64 (28.6 entries on average) made a density sweep's kappa and apply passes 0.77-0.88
+# of their time (2-core AMD EPYC; bench/RESULTS.md, forty-second session): the memory a pass
+# walks, not its arithmetic.
+NEAR_ROUND = 4
 # The CFL speed is at least this share of the shot's expected largest speed V = sqrt(2 g H).
 # A resting column of height H took the steps of max_dt and blew up within a few steps above
 # dt = 2.8 r / V (tried: 0.4 m at r = 2.5 mm above 2.5-3 ms, at r = 5 mm above 4.2-6 ms;
@@ -129,17 +137,18 @@ SPEED_FLOOR = 0.25
 @ti.kernel
 def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, alpha: F1, target: F1,
                      wall_grad: V3, verlet: I1, verlet_count: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
-                     rows: ti.template(), img: I1, img_g: V3, img_span: IV2, img_top: I1, prm: F1, ftab: F2,
-                     ghost_t: F4, ghost_g: F4, visc_t: F2, wall_visc: F1, ctype: I1, cprm: F2, sdf: F1,
+                     near_lay: ivec2, rows: ti.template(), img: I1, img_g: V3, img_span: IV2, img_top: I1, prm: F1,
+                     ftab: F2, ghost_t: F4, ghost_g: F4, visc_t: F2, wall_visc: F1, ctype: I1, cprm: F2, sdf: F1,
                      surface_g: ti.f32, surface_d: ti.f32, warm_kappa: F1, warm_push: V3, kern: ti.template()):
     """Number density delta_i = sum_j W_ij + sum_b W_ib, density m_i delta_i and the factor
     alpha_i (a sweep's exact diagonal where the neighbourhood is sparse: module docstring), and
     the particle's target number density delta0 (1 - D_i) (SURFACE_FROM: D_i from how one-sided
     its neighbourhood is, reaching surface_d at the lattice top's one-sidedness surface_g);
-    copies the Verlet entries now within h into `near`, as the WCSPH density pass (without a skin
-    `near` is `verlet` itself, filtered in place: DFSPHSolver._grow_neighbours), and beside each
-    entry the pair's dW/dr / r (`gfac`), so that the solves' sweeps, at these same positions,
-    take grad W_ij = gfac x_ij without a square root or the kernel's pieces. wall_visc[i]: the
+    copies the Verlet entries now within h into `near`, as the WCSPH density pass, in rows
+    `near_lay` (on the CPU no wider than the longest list: DFSPHSolver.near_lay; on a GPU `near`
+    is `verlet` itself, filtered in place), and beside each entry the pair's dW/dr / r (`gfac`),
+    so that the solves' sweeps, at these same positions, take grad W_ij = gfac x_ij without a
+    square root or the kernel's pieces. wall_visc[i]: the
     no-slip weight 2 eta_i S_i / (delta_i delta0) of the walls near i
     (boundaries.wall_viscosity). `prm`: the constants (types.consts_of, box_of).
 
@@ -164,11 +173,11 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
         sq = 0.0
         ki = warm_kappa[i]
         push = vec3(0.0)
-        base = i * lay.x
-        step = list_step(lay, rows)
+        vbase, vstep = i * lay.x, list_step(lay, rows)          # the Verlet list
+        base, step = i * near_lay.x, list_step(near_lay, rows)  # `near` and `gfac`
         k = 0
         for m in range(verlet_count[i]):
-            j = verlet[base + m * step]
+            j = verlet[vbase + m * vstep]
             rv = xi - position[j]
             r2 = rv.norm_sqr()
             inside = (r2 < h * h) & (r2 > 1e-18)
@@ -743,14 +752,19 @@ class DFSPHSolver(SPHSolver):
             k_gather_f1(self.order, a, b)
             setattr(self, name, b)
             setattr(self, name + "_b", a)
+        if self.rows:
+            longest = int(self.read(self.ctl, clock.LONGEST))
+            self.near_lay = ivec2(min(max(-(-longest // NEAR_ROUND) * NEAR_ROUND, NEAR_ROUND), self.nb_cap), 1)
 
     def _grow_neighbours(self, cap: int) -> None:
         super()._grow_neighbours(cap)
         self.gfac = ti.ndarray(ti.f32, max(self.n * self.nb_cap, 1))     # dW/dr / r beside each `near` entry
-        if self.skin == 0:
-            # without a skin the lists hold only pairs within h: the density pass's copy of those
-            # within h (`near`) can filter them in place (entry k <= m is written after entry m
-            # is read), and the second list's memory (4 bytes a slot) is saved
+        # `near` (and gfac) in rows of near_lay: on the CPU a separate copy in rows as wide as the
+        # longest list (build_lists; NEAR_ROUND), on a GPU the interleaved Verlet lists themselves
+        # where there is no skin (they hold only pairs within h: the density pass filters them in
+        # place, entry k <= m written after entry m is read, and saves 4 bytes a slot)
+        self.near_lay = self.lay
+        if self.skin == 0 and not self.rows:
             self.near, self.near_count = self.verlet, self.verlet_count
 
     def update_lists(self) -> None:
@@ -783,8 +797,8 @@ class DFSPHSolver(SPHSolver):
     def _density_factor(self) -> None:
         k_density_factor(self.position, self.fluid, self.number_density, self.density, self.alpha, self.target,
                          self.wall_grad, self.verlet, self.verlet_count, self.near, self.near_count, self.gfac,
-                         self.lay, self.rows, *self.images, self.img_top, self.prm, self.ftab, self.ghost_t,
-                         self.ghost_g, self.visc_t, self.wall_visc, self.ctype, self.cprm, self.sdf,
+                         self.lay, self.near_lay, self.rows, *self.images, self.img_top, self.prm, self.ftab,
+                         self.ghost_t, self.ghost_g, self.visc_t, self.wall_visc, self.ctype, self.cprm, self.sdf,
                          *self.params.surface_deficit, self.kappa_divergence, self.warm_push, self.kern)
 
     def _solve(self, solve: int, total, warm_scale: float, bound: float, dt: float,
@@ -819,7 +833,7 @@ class DFSPHSolver(SPHSolver):
         past the end about 0.25 ms)."""
         def sweeps(warm_start: bool, count: int) -> None:
             k_sweeps(self.position, self.velocity, self.fluid, self.number_density, self.target, self.near,
-                     self.near_count, self.gfac, self.lay, self.rows, *self.images, self.alpha, self.wall_grad,
+                     self.near_count, self.gfac, self.near_lay, self.rows, *self.images, self.alpha, self.wall_grad,
                      self.kappa, total, self.warm_push, self.residual, self._summer.partial, self._summer.groups, dt,
                      warm_scale, self.prm, self.ftab, self.sweep_ctl, bound, self.n * self.params.lattice_density,
                      min_iterations, self.max_iterations, solve, warm_start, count)
@@ -842,15 +856,15 @@ class DFSPHSolver(SPHSolver):
         """This sweep's kappa and residual (one launch)."""
         if solve == DIVERGENCE:
             k_divergence_kappa(self.position, self.velocity, self.number_density, self.target, self.near,
-                               self.near_count, self.gfac, self.lay, self.rows, *self.images, self.alpha,
+                               self.near_count, self.gfac, self.near_lay, self.rows, *self.images, self.alpha,
                                self.wall_grad, self.kappa, self.residual, dt)
         else:
             k_density_kappa(self.position, self.velocity, self.number_density, self.target, self.near,
-                            self.near_count, self.gfac, self.lay, self.rows, *self.images, self.alpha,
+                            self.near_count, self.gfac, self.near_lay, self.rows, *self.images, self.alpha,
                             self.wall_grad, self.kappa, self.residual, dt, self.prm)
 
     def _apply(self, kappa, total, dt: float) -> None:
-        k_apply_kappa(self.position, self.velocity, self.fluid, self.near, self.near_count, self.gfac, self.lay,
+        k_apply_kappa(self.position, self.velocity, self.fluid, self.near, self.near_count, self.gfac, self.near_lay,
                       self.rows, *self.images, kappa, total, self.wall_grad, dt, self.ftab)
 
     def divergence_solve(self, dt: float) -> None:
@@ -876,12 +890,12 @@ class DFSPHSolver(SPHSolver):
         guess = self.dt_prev or self.params.max_dt
         mode = (AKINCI if self.params.surface_tension_model == "akinci" else MUELLER) if self.tension else 0
         if mode == AKINCI:
-            k_surface_normals(self.position, self.number_density, self.near, self.near_count, self.lay, self.rows,
-                              *self.images, self.normal, self.prm, self.kern)
+            k_surface_normals(self.position, self.number_density, self.near, self.near_count, self.near_lay,
+                              self.rows, *self.images, self.normal, self.prm, self.kern)
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
-                      self.density, self.near, self.near_count, self.gfac, self.lay, self.rows, *self.images, self.prm,
-                      self.ftab, self.stats, guess, self.normal, self.viscous, self.wall_visc, self.wall_grad,
-                      self.kappa_density, self.warm_push, self.kern, mode, self.viscous_terms)
+                      self.density, self.near, self.near_count, self.gfac, self.near_lay, self.rows, *self.images,
+                      self.prm, self.ftab, self.stats, guess, self.normal, self.viscous, self.wall_visc,
+                      self.wall_grad, self.kappa_density, self.warm_push, self.kern, mode, self.viscous_terms)
         self.vmax, self.vmax_lone = (float(v) for v in self.read(self.stats))
 
     def kick(self, dt: float) -> None:
@@ -894,8 +908,8 @@ class DFSPHSolver(SPHSolver):
         if self.implicit is None:
             self.implicit = ImplicitViscosity(self.n)
         it, res = self.implicit.solve(self.position, self.velocity, self.fluid, self.number_density, self.near,
-                                      self.near_count, self.gfac, self.lay, self.rows, self.ftab, self.wall_visc, dt,
-                                      self.h)
+                                      self.near_count, self.gfac, self.near_lay, self.rows, self.ftab, self.wall_visc,
+                                      dt, self.h)
         self.counters["viscosity_steps"] += 1
         self.counters["viscosity_iterations"] += it
         self.counters["viscosity_residual"] = max(self.counters["viscosity_residual"], res)

@@ -230,11 +230,12 @@ def list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.templa
     """Verlet lists: every j != i within `reach` (= h + skin) of i, at the reference positions,
     in grid order, entry m at verlet[i * lay.x + m * lay.y] (see SPHSolver.lay; list_step). A
     particle with more than `cap` raises longest[at] to its count (longest[at] starts at 0 here),
-    and the lists are built again larger. The candidate loop has no branch: in a
+    and the lists are built again larger; longest[at + 1] (clock.LONGEST) ends as the longest list
+    built, so that DFSPH can copy them into rows no wider (DFSPHSolver.near_lay). The candidate loop has no branch: in a
     disordered fluid, whether a candidate is a neighbour is a coin toss that a branch
     predictor keeps losing. group > 1 (cells reach wide): grouped_list_pass, the same lists
     for the same sort."""
-    longest[at] = 0.0
+    longest[at], longest[at + 1] = 0.0, 0.0
     if ti.static(group > 1):
         grouped_list_pass(ref, verlet, verlet_count, cap, lay, rows, reach, start, count, origin, inv_cell, dims,
                           longest, at, group)
@@ -269,6 +270,7 @@ def cell_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.t
         verlet_count[i] = ti.min(m, cap)
         if m > cap:
             ti.atomic_max(longest[at], ti.cast(m, ti.f64))
+        raise_longest(longest, at + 1, ti.min(m, cap))
 
 
 @ti.func
@@ -322,6 +324,15 @@ def grouped_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: t
                     verlet_count[i + p] = ti.min(m[p], cap - 1)
                     if m[p] > cap - 1:
                         ti.atomic_max(longest[at], ti.cast(m[p], ti.f64))
+                    raise_longest(longest, at + 1, ti.min(m[p], cap - 1))
+
+
+@ti.func
+def raise_longest(longest: ti.template(), k: ti.i32, count: ti.i32):
+    """longest[k] = max(longest[k], count), read first: once the longest is found, almost no
+    thread writes."""
+    if count > longest[k]:
+        ti.atomic_max(longest[k], ti.cast(count, ti.f64))
 
 
 # --------------------------------------------------------------- the whole rebuild, one launch

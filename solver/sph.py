@@ -275,6 +275,7 @@ class SPHSolver:
         self.verlet_count = ti.ndarray(ti.i32, self.n)
         self.near = ti.ndarray(ti.i32, max(self.n * cap, 1))      # within h now (a subset)
         self.near_count = ti.ndarray(ti.i32, self.n)
+        self.near_lay = self.lay       # `near`'s rows (DFSPH's are narrower on the CPU)
 
     def compute_density(self, gate=None) -> None:
         k_density(self.position, self.fluid, self.number_density, self.density, self.pressure,

@@ -671,7 +671,7 @@ def test_the_factor_is_a_sweeps_exact_diagonal_where_the_neighbourhood_is_sparse
     s.update_lists()
     s.compute_density()
     x, nc, span = s.position.to_numpy(), s.near_count.to_numpy(), s.img_span.to_numpy()
-    near, gfac, (lx, ly) = s.near.to_numpy(), s.gfac.to_numpy(), s.lay
+    near, gfac, (lx, ly) = s.near.to_numpy(), s.gfac.to_numpy(), s.near_lay
     img, img_g, wall_grad = s.img.to_numpy(), s.img_g.to_numpy(), s.wall_grad.to_numpy()
     alpha = s.alpha.to_numpy()
 
@@ -693,7 +693,7 @@ def test_the_factor_is_a_sweeps_exact_diagonal_where_the_neighbourhood_is_sparse
         unit[i] = 1.0
         kappa.from_numpy(unit)
         s.velocity.from_numpy(np.zeros((s.n, 3), np.float32))
-        k_apply_kappa(s.position, s.velocity, s.fluid, s.near, s.near_count, s.gfac, s.lay, s.rows, *s.images,
+        k_apply_kappa(s.position, s.velocity, s.fluid, s.near, s.near_count, s.gfac, s.near_lay, s.rows, *s.images,
                       kappa, scratch, s.wall_grad, dt, s.ftab)
         answer = -rate(i, s.velocity.to_numpy().astype(np.float64)) / dt
         assert abs(answer * alpha[i] - 1.0) < 1e-3, \
