@@ -61,7 +61,6 @@ import math
 import numpy as np
 import taichi as ti
 
-from . import clock
 from . import kernels as K
 from .boundaries import boundary_sums, mirror_walls, reflect, reflect_velocity, wall_viscosity
 from .errors import Unstable
@@ -118,13 +117,6 @@ MUELLER, AKINCI = 1, 2          # surface tension models
 # Müller's mu, Morris's eta or XSPH skip that term's work per pair: on the example, water with
 # eta and XSPH but no mu, the pass's fastest run went from 2.0 to 1.6 ms)
 MU_TERM, ETA_TERM, XSPH_TERM = 1, 2, 4
-# On the CPU the passes after the density pass read `near` and `gfac` in rows as wide as the
-# longest list rounded up to this, not the Verlet lists' room (1.5 times a lattice's pairs,
-# grown by a quarter on overflow): on bench/solver.py's dam break at 0.15 s, rows of 44 where the
-# room is 64 (28.6 entries on average) made a density sweep's kappa and apply passes 0.77-0.88
-# of their time (2-core AMD EPYC; bench/RESULTS.md, forty-second session): the memory a pass
-# walks, not its arithmetic.
-NEAR_ROUND = 4
 # The CFL speed is at least this share of the shot's expected largest speed V = sqrt(2 g H).
 # A resting column of height H took the steps of max_dt and blew up within a few steps above
 # dt = 2.8 r / V (tried: 0.4 m at r = 2.5 mm above 2.5-3 ms, at r = 5 mm above 4.2-6 ms;
@@ -752,18 +744,14 @@ class DFSPHSolver(SPHSolver):
             k_gather_f1(self.order, a, b)
             setattr(self, name, b)
             setattr(self, name + "_b", a)
-        if self.rows:
-            longest = int(self.read(self.ctl, clock.LONGEST))
-            self.near_lay = ivec2(min(max(-(-longest // NEAR_ROUND) * NEAR_ROUND, NEAR_ROUND), self.nb_cap), 1)
 
     def _grow_neighbours(self, cap: int) -> None:
         super()._grow_neighbours(cap)
         self.gfac = ti.ndarray(ti.f32, max(self.n * self.nb_cap, 1))     # dW/dr / r beside each `near` entry
-        # `near` (and gfac) in rows of near_lay: on the CPU a separate copy in rows as wide as the
-        # longest list (build_lists; NEAR_ROUND), on a GPU the interleaved Verlet lists themselves
-        # where there is no skin (they hold only pairs within h: the density pass filters them in
-        # place, entry k <= m written after entry m is read, and saves 4 bytes a slot)
-        self.near_lay = self.lay
+        # `near` (and gfac) in rows of near_lay (SPHSolver.build_lists): on the CPU a copy of its
+        # own, on a GPU the interleaved Verlet lists themselves where there is no skin (they hold
+        # only pairs within h: the density pass filters them in place, entry k <= m written after
+        # entry m is read, and saves 4 bytes a slot)
         if self.skin == 0 and not self.rows:
             self.near, self.near_count = self.verlet, self.verlet_count
 

@@ -35,6 +35,13 @@ from .wcsph import k_advance, k_density, k_forces, k_step, k_synced_velocity
 # three example shots at their own resolution, all frames, never went below 0.75 of it.
 MIN_DT_FRACTION = 1e-3
 MAX_LIST_ENTRIES = 2 ** 31 - 1     # Taichi's ndarray index is int32
+# On the CPU the passes after the density pass read the pairs within h (`near`, and DFSPH's
+# `gfac`) in rows as wide as the longest list rounded up to this, not the Verlet lists' room
+# (1.5 times a lattice's pairs plus a skin, grown by a quarter on overflow): on bench/solver.py's
+# DFSPH dam break at 0.15 s, rows of 44 where the room is 64 (28.6 entries on average) made a
+# density sweep's kappa and apply passes 0.77-0.88 of their time, and whole steps 0.80 (2-core
+# AMD EPYC; bench/RESULTS.md, forty-second session): the memory a pass walks, not its arithmetic.
+NEAR_ROUND = 4
 
 
 @dataclass
@@ -184,6 +191,9 @@ class SPHSolver:
             self.list_pairs()
         while self.LISTS_CHECKED_AT_ONCE and self._overflowed():
             self.list_pairs()
+        if self.rows:      # `near`'s rows as wide as the longest list (NEAR_ROUND)
+            longest = int(self.read(self.ctl, clock.LONGEST))
+            self.near_lay = ivec2(min(max(-(-longest // NEAR_ROUND), 1) * NEAR_ROUND, self.nb_cap), 1)
         self.lists_built += 1
         self._life, self._built_at = self.steps - self._built_at, self.steps     # see batch()
 
@@ -275,11 +285,11 @@ class SPHSolver:
         self.verlet_count = ti.ndarray(ti.i32, self.n)
         self.near = ti.ndarray(ti.i32, max(self.n * cap, 1))      # within h now (a subset)
         self.near_count = ti.ndarray(ti.i32, self.n)
-        self.near_lay = self.lay       # `near`'s rows (DFSPH's are narrower on the CPU)
+        self.near_lay = self.lay       # `near`'s rows: on the CPU narrower once built (build_lists)
 
     def compute_density(self, gate=None) -> None:
         k_density(self.position, self.fluid, self.number_density, self.density, self.pressure,
-                  self.verlet, self.verlet_count, self.near, self.near_count, self.lay, self.rows,
+                  self.verlet, self.verlet_count, self.near, self.near_count, self.lay, self.near_lay, self.rows,
                   self.prm, self.ftab, self.ghost_t, self.ghost_g,
                   self.ctype, self.cprm, self.sdf, self.open_gate if gate is None else gate,
                   self.params.density_kind)
@@ -292,7 +302,7 @@ class SPHSolver:
         minutes on one frame -- or flings particles apart): the controller says UNSTABLE and
         pull_clock raises."""
         k_forces(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
-                 self.density, self.pressure, self.near, self.near_count, self.lay, self.rows,
+                 self.density, self.pressure, self.near, self.near_count, self.near_lay, self.rows,
                  self.prm, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom,
                  self.ctype, self.cprm, self.sdf, self.stats, self.ctl, self.params.pressure_kind, self.tension)
 
@@ -338,7 +348,7 @@ class SPHSolver:
         """One gated step in one launch (wcsph.k_step)."""
         k_step(self.position, self.velocity, self.acceleration, self.ref, self.fluid, self.number_density,
                self.density, self.pressure, self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
-               self.rows, self.prm, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom, self.ctype, self.cprm,
+               self.near_lay, self.rows, self.prm, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom, self.ctype, self.cprm,
                self.sdf, self.stats, self.ctl, 0.5 * self.skin, self.params.density_kind, self.params.pressure_kind,
                self.tension)
 

@@ -48,22 +48,22 @@ def color_tension(sigma: ti.f32, n, lap: ti.f32, rho: ti.f32, h: ti.f32, thresho
 
 @ti.func
 def density_pass(position: T, fluid: T, number_density: T, density: T, pressure: T, verlet: T,
-                 verlet_count: T, near: T, near_count: T, lay: T, rows: T, prm: T, ftab: T, ghost_t: T, ghost_g: T,
-                 ctype: T, cprm: T, sdf: T, ctl: T, dkern: T):
+                 verlet_count: T, near: T, near_count: T, lay: T, near_lay: T, rows: T, prm: T, ftab: T, ghost_t: T,
+                 ghost_g: T, ctype: T, cprm: T, sdf: T, ctl: T, dkern: T):
     """Density and pressure from the Verlet list; also copies the entries now within h (and not
-    coincident) into the exact list `near` that the force pass reads, without branching.
-    `prm`: the constants (types.consts_of, box_of)."""
+    coincident) into the exact list `near` that the force pass reads, without branching, in rows
+    `near_lay` (SPHSolver.near_lay). `prm`: the constants (types.consts_of, box_of)."""
     h = prm[P_H]
     for i in position:
         if gate_open(ctl):
             c, box = consts_of(prm), box_of(prm)
             xi = position[i]
             s = K.w_r2(dkern, 0.0, h)                 # the particle itself
-            base = i * lay.x
-            step = list_step(lay, rows)
+            vbase, vstep = i * lay.x, list_step(lay, rows)          # the Verlet list
+            base, step = i * near_lay.x, list_step(near_lay, rows)  # `near`
             k = 0
             for m in range(verlet_count[i]):
-                j = verlet[base + m * step]
+                j = verlet[vbase + m * vstep]
                 r2 = (xi - position[j]).norm_sqr()
                 s += K.w_r2(dkern, r2, h)
                 near[base + k * step] = j
@@ -202,11 +202,11 @@ def advance_pass(position: T, velocity: T, acceleration: T, ref: T, limit: ti.f3
 # compile superlinearly (on the CPU 14 s for one step, 47 s for two).
 @ti.kernel
 def k_density(position: V3, fluid: I1, number_density: F1, density: F1, pressure: F1,
-              verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2, rows: ti.template(),
-              prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4,
+              verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2, near_lay: ivec2,
+              rows: ti.template(), prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4,
               ctype: I1, cprm: F2, sdf: F1, ctl: D1, dkern: ti.template()):
     density_pass(position, fluid, number_density, density, pressure, verlet, verlet_count, near, near_count,
-                 lay, rows, prm, ftab, ghost_t, ghost_g, ctype, cprm, sdf, ctl, dkern)
+                 lay, near_lay, rows, prm, ftab, ghost_t, ghost_g, ctype, cprm, sdf, ctl, dkern)
 
 
 @ti.kernel
@@ -228,15 +228,14 @@ def k_advance(position: V3, velocity: V3, acceleration: V3, ref: V3, limit: ti.f
 @ti.kernel
 def k_step(position: V3, velocity: V3, acceleration: V3, ref: V3, fluid: I1, number_density: F1,
            density: F1, pressure: F1, verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
-           rows: ti.template(),
-           prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2, ctype: I1, cprm: F2, sdf: F1,
+           near_lay: ivec2, rows: ti.template(), prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2, ctype: I1, cprm: F2, sdf: F1,
            stats: F1, ctl: D1, limit: ti.f32, dkern: ti.template(), pkern: ti.template(),
            tension: ti.template()):
     """One gated step: density, forces (and the step length), advance."""
     density_pass(position, fluid, number_density, density, pressure, verlet, verlet_count, near,
-                 near_count, lay, rows, prm, ftab, ghost_t, ghost_g, ctype, cprm, sdf, ctl, dkern)
+                 near_count, lay, near_lay, rows, prm, ftab, ghost_t, ghost_g, ctype, cprm, sdf, ctl, dkern)
     forces_pass(position, velocity, acceleration, fluid, number_density, density, pressure, near,
-                near_count, lay, rows, prm, ftab, ghost_t, ghost_g, ghost_mom, ctype, cprm, sdf, stats, ctl,
+                near_count, near_lay, rows, prm, ftab, ghost_t, ghost_g, ghost_mom, ctype, cprm, sdf, stats, ctl,
                 pkern, tension)
     advance_pass(position, velocity, acceleration, ref, limit, prm, ctype, cprm, sdf, ctl)
 
