@@ -348,9 +348,9 @@ class SPHSolver:
         """One gated step in one launch (wcsph.k_step)."""
         k_step(self.position, self.velocity, self.acceleration, self.ref, self.fluid, self.number_density,
                self.density, self.pressure, self.verlet, self.verlet_count, self.near, self.near_count, self.lay,
-               self.near_lay, self.rows, self.prm, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom, self.ctype, self.cprm,
-               self.sdf, self.stats, self.ctl, 0.5 * self.skin, self.params.density_kind, self.params.pressure_kind,
-               self.tension)
+               self.near_lay, self.rows, self.prm, self.ftab, self.ghost_t, self.ghost_g, self.ghost_mom, self.ctype,
+               self.cprm, self.sdf, self.stats, self.ctl, 0.5 * self.skin, self.params.density_kind,
+               self.params.pressure_kind, self.tension)
 
     def batch(self) -> int:
         """Gated steps to launch before the next read: on a GPU, about as many as the current

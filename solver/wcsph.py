@@ -228,9 +228,9 @@ def k_advance(position: V3, velocity: V3, acceleration: V3, ref: V3, limit: ti.f
 @ti.kernel
 def k_step(position: V3, velocity: V3, acceleration: V3, ref: V3, fluid: I1, number_density: F1,
            density: F1, pressure: F1, verlet: I1, verlet_count: I1, near: I1, near_count: I1, lay: ivec2,
-           near_lay: ivec2, rows: ti.template(), prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2, ctype: I1, cprm: F2, sdf: F1,
-           stats: F1, ctl: D1, limit: ti.f32, dkern: ti.template(), pkern: ti.template(),
-           tension: ti.template()):
+           near_lay: ivec2, rows: ti.template(), prm: F1, ftab: F2, ghost_t: F4, ghost_g: F4, ghost_mom: F2,
+           ctype: I1, cprm: F2, sdf: F1, stats: F1, ctl: D1, limit: ti.f32, dkern: ti.template(),
+           pkern: ti.template(), tension: ti.template()):
     """One gated step: density, forces (and the step length), advance."""
     density_pass(position, fluid, number_density, density, pressure, verlet, verlet_count, near,
                  near_count, lay, near_lay, rows, prm, ftab, ghost_t, ghost_g, ctype, cprm, sdf, ctl, dkern)
