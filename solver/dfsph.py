@@ -137,12 +137,12 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
     the particle's target number density delta0 (1 - D_i) (SURFACE_FROM: D_i from how one-sided
     its neighbourhood is, reaching surface_d at the lattice top's one-sidedness surface_g);
     copies the Verlet entries now within h into `near`, as the WCSPH density pass, in rows
-    `near_lay` (on the CPU no wider than the longest list: DFSPHSolver.near_lay; on a GPU `near`
+    `near_lay` (on the CPU no wider than the longest list: SPHSolver.build_lists; on a GPU `near`
     is `verlet` itself, filtered in place), and beside each entry the pair's dW/dr / r (`gfac`),
     so that the solves' sweeps, at these same positions, take grad W_ij = gfac x_ij without a
-    square root or the kernel's pieces. wall_visc[i]: the
-    no-slip weight 2 eta_i S_i / (delta_i delta0) of the walls near i
-    (boundaries.wall_viscosity). `prm`: the constants (types.consts_of, box_of).
+    square root or the kernel's pieces. wall_visc[i]: the no-slip weight 2 eta_i S_i /
+    (delta_i delta0) of the walls near i (boundaries.wall_viscosity). `prm`: the constants
+    (types.consts_of, box_of).
 
     The walls' images j' of i and its neighbours within h are listed for the sweeps as the
     neighbours are: `img` holds image_entry(j, sub) (sub: the walls' bit set), `img_g` grad

@@ -231,10 +231,10 @@ def list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.templa
     in grid order, entry m at verlet[i * lay.x + m * lay.y] (see SPHSolver.lay; list_step). A
     particle with more than `cap` raises longest[at] to its count (longest[at] starts at 0 here),
     and the lists are built again larger; longest[at + 1] (clock.LONGEST) ends as the longest list
-    built, so that DFSPH can copy them into rows no wider (DFSPHSolver.near_lay). The candidate loop has no branch: in a
-    disordered fluid, whether a candidate is a neighbour is a coin toss that a branch
-    predictor keeps losing. group > 1 (cells reach wide): grouped_list_pass, the same lists
-    for the same sort."""
+    built, for the density pass to copy the pairs within h into rows no wider (SPHSolver.near_lay).
+    The candidate loop has no branch: in a disordered fluid, whether a candidate is a neighbour is
+    a coin toss that a branch predictor keeps losing. group > 1 (cells reach wide):
+    grouped_list_pass, the same lists for the same sort."""
     longest[at], longest[at + 1] = 0.0, 0.0
     if ti.static(group > 1):
         grouped_list_pass(ref, verlet, verlet_count, cap, lay, rows, reach, start, count, origin, inv_cell, dims,
