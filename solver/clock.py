@@ -6,8 +6,8 @@ A run of steps is armed with a target time; every kernel of a step is gated on G
 nothing once it is 0. The last kernel of a step clears GO when the neighbour lists must be
 rebuilt (a particle moved skin/2 from where they were built) or the target time is reached; the
 step length clears it when the step has blown up; a list build that overflowed its room keeps
-it closed (OVERFLOW holds the longest list; LONGEST, the longest of any build). The host launches a batch of gated
-steps, reads the array once, and acts on what it says.
+it closed (OVERFLOW holds the longest list; LONGEST, the longest any build listed). The host
+launches a batch of gated steps, reads the array once, and acts on what it says.
 """
 import taichi as ti
 

@@ -8,7 +8,7 @@ the group (list_pass).
 """
 import taichi as ti
 
-from .types import D1, F1, I1, T, V3, ivec2, ivec3, vec3
+from .types import D1, F1, I1, T, V3, ivec2, ivec3, raise_max, vec3
 
 SCAN_BLOCK = 256
 # On a GPU, cells are (h + skin) / CELL_DIV wide; a particle's list neighbours lie within CELL_DIV
@@ -270,7 +270,7 @@ def cell_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.t
         verlet_count[i] = ti.min(m, cap)
         if m > cap:
             ti.atomic_max(longest[at], ti.cast(m, ti.f64))
-        raise_longest(longest, at + 1, ti.min(m, cap))
+        raise_max(longest, at + 1, ti.cast(ti.min(m, cap), ti.f32))
 
 
 @ti.func
@@ -324,15 +324,7 @@ def grouped_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: t
                     verlet_count[i + p] = ti.min(m[p], cap - 1)
                     if m[p] > cap - 1:
                         ti.atomic_max(longest[at], ti.cast(m[p], ti.f64))
-                    raise_longest(longest, at + 1, ti.min(m[p], cap - 1))
-
-
-@ti.func
-def raise_longest(longest: ti.template(), k: ti.i32, count: ti.i32):
-    """longest[k] = max(longest[k], count), read first: once the longest is found, almost no
-    thread writes."""
-    if count > longest[k]:
-        ti.atomic_max(longest[k], ti.cast(count, ti.f64))
+                    raise_max(longest, at + 1, ti.cast(ti.min(m[p], cap - 1), ti.f32))
 
 
 # --------------------------------------------------------------- the whole rebuild, one launch
