@@ -230,8 +230,9 @@ def list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.templa
     """Verlet lists: every j != i within `reach` (= h + skin) of i, at the reference positions,
     in grid order, entry m at verlet[i * lay.x + m * lay.y] (see SPHSolver.lay; list_step). A
     particle with more than `cap` raises longest[at] to its count (longest[at] starts at 0 here),
-    and the lists are built again larger; longest[at + 1] (clock.LONGEST) ends as the longest list
-    built, for the density pass to copy the pairs within h into rows no wider (SPHSolver.near_lay).
+    and the lists are built again larger; with `rows` longest[at + 1] (clock.LONGEST) ends as the
+    longest list built, for the density pass to copy the pairs within h into rows no wider
+    (SPHSolver.near_lay; interleaved lists, a GPU's, have no rows to narrow).
     The candidate loop has no branch: in a disordered fluid, whether a candidate is a neighbour is
     a coin toss that a branch predictor keeps losing. group > 1 (cells reach wide):
     grouped_list_pass, the same lists for the same sort."""
@@ -270,7 +271,8 @@ def cell_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: ti.t
         verlet_count[i] = ti.min(m, cap)
         if m > cap:
             ti.atomic_max(longest[at], ti.cast(m, ti.f64))
-        raise_max(longest, at + 1, ti.cast(ti.min(m, cap), ti.f32))
+        if ti.static(rows):       # (read only for rows: SPHSolver.build_lists)
+            raise_max(longest, at + 1, ti.cast(ti.min(m, cap), ti.f32))
 
 
 @ti.func
@@ -324,7 +326,8 @@ def grouped_list_pass(ref: ti.template(), verlet: ti.template(), verlet_count: t
                     verlet_count[i + p] = ti.min(m[p], cap - 1)
                     if m[p] > cap - 1:
                         ti.atomic_max(longest[at], ti.cast(m[p], ti.f64))
-                    raise_max(longest, at + 1, ti.cast(ti.min(m[p], cap - 1), ti.f32))
+                    if ti.static(rows):
+                        raise_max(longest, at + 1, ti.cast(ti.min(m[p], cap - 1), ti.f32))
 
 
 # --------------------------------------------------------------- the whole rebuild, one launch
