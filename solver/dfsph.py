@@ -65,7 +65,7 @@ from . import kernels as K
 from .boundaries import boundary_sums, mirror_walls, reflect, reflect_velocity, wall_viscosity
 from .errors import Unstable
 from .neighbours import k_gather_f1, list_step
-from .params import F_ETA, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, NO_SLIP_ROWS, SolverParams
+from .params import F_ETA, F_INV_MASS, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, NO_SLIP_ROWS, SolverParams
 from .sph import NOT_FINITE, SPHSolver, explicit_viscous_limit
 from .sums import Summer, chunk_sums_pass, sweep_open, total_pass
 from .types import D1, F1, F2, F4, I1, IV2, P_H, V3, T, box_of, consts_of, ivec2, raise_max, vec3
@@ -155,6 +155,7 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
     (warm_start_pass): summed here, where every pair's gradient is at hand, and not in a pass of
     its own."""
     h = prm[P_H]
+    inv_h = 1.0 / h
     img_top[0] = 0
     cap = img.shape[0]
     for i in position:
@@ -177,14 +178,13 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
             near[slot] = j
             k += ti.select(inside, 1, 0)
             if inside:
-                s += K.w_r2(kern, r2, h)
-                r = ti.sqrt(r2)
-                f = K.dw(kern, r, h) / r
+                w, f = K.w_dwr(kern, r2, inv_h)
+                s += w
                 gfac[slot] = f
                 g = f * rv
                 grad_sum += g
                 push += (ki + warm_kappa[j]) * g
-                sq += g.norm_sqr() / ftab[fluid[j], F_MASS]
+                sq += g.norm_sqr() * ftab[fluid[j], F_INV_MASS]
         near_count[i] = k
         # the box walls: images of i and its neighbours mirrored in the walls within h (and in
         # both or all three at an edge or corner), as fluid with their velocities mirrored
@@ -208,12 +208,12 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
                         rv = xi - reflect(position[j], sub, planes)
                         r2 = rv.norm_sqr()
                         if (r2 < h * h) & (r2 > 1e-18):
-                            s_m += K.w_r2(kern, r2, h)
-                            r = ti.sqrt(r2)
-                            g = K.dw(kern, r, h) / r * rv
+                            w, f = K.w_dwr(kern, r2, inv_h)
+                            s_m += w
+                            g = f * rv
                             grad_sum += g
                             push += (ki + warm_kappa[j]) * g
-                            sq += g.norm_sqr() / ftab[fluid[j], F_MASS]
+                            sq += g.norm_sqr() * ftab[fluid[j], F_INV_MASS]
                             if start + q < end:
                                 img[start + q] = image_entry(j, sub)
                                 img_g[start + q] = g
@@ -235,14 +235,14 @@ def k_density_factor(position: V3, fluid: I1, number_density: F1, density: F1, a
                         rv = xi - reflect(position[j], sub, planes)
                         r2 = rv.norm_sqr()
                         if (r2 < h * h) & (r2 > 1e-18):
-                            r = ti.sqrt(r2)
-                            g = K.dw(kern, r, h) / r * rv
+                            _w, f = K.w_dwr(kern, r2, inv_h)
+                            g = f * rv
                             if m < 0:
                                 own += g
                             else:
                                 back += reflect_velocity(g, sub)
                 if m >= 0:
-                    sq_exact += back.norm_sqr() / ftab[fluid[j], F_MASS]
+                    sq_exact += back.norm_sqr() * ftab[fluid[j], F_INV_MASS]
         # colliders from their tables, added: the images cover the space beyond the walls that
         # the fluid mirrors into, which never lies beyond a collider's face too
         wd, wg = boundary_sums(xi, c, box, ghost_t, ghost_g, ctype, cprm, sdf, False)
@@ -541,7 +541,8 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
         for m in range(near_count[i]):
             j = near[base + m * step]
             rv = xi - position[j]
-            r = rv.norm()
+            r2 = rv.norm_sqr()
+            r = ti.sqrt(r2)
             dj = number_density[j]
             fj = fluid[j]
             push += (ki + warm_kappa[j]) * gfac[base + m * step] * rv
@@ -549,9 +550,10 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
                 mu = 0.5 * (ftab[fi, F_MU] + ftab[fj, F_MU])
                 a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
             if ti.static(terms & ETA_TERM):
-                # Morris's pair term (wcsph.morris) with x_ij . grad W_ij = gfac r^2 from the density pass
-                a_eta += ((ftab[fi, F_ETA] + ftab[fj, F_ETA]) / dj * gfac[base + m * step] * r * r
-                          / (r * r + 0.01 * h * h) * (vi - velocity[j]))
+                # Morris's pair term (wcsph.morris) with x_ij . grad W_ij = gfac r^2 from the density
+                # pass, one division a pair (kernels.w_dwr says why that matters)
+                a_eta += ((ftab[fi, F_ETA] + ftab[fj, F_ETA]) * gfac[base + m * step] * r2
+                          / (dj * (r2 + 0.01 * h * h)) * (vi - velocity[j]))
             if ti.static(terms & XSPH_TERM):
                 smooth += (velocity[j] - vi) * K.w(kern, r, h) / dj
             if ti.static(tension == MUELLER):

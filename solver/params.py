@@ -17,8 +17,9 @@ from .meshsdf import SDFGrid
 SPHERE, BOX, CAPSULE, MESH = 0, 1, 2, 3
 COLLIDER_TYPES = {"sphere": SPHERE, "box": BOX, "capsule": CAPSULE, "mesh": MESH}
 # Fluid table columns: particle mass, rest density rho0, Tait stiffness B, Müller's particle-scale
-# viscosity mu, tension sigma, dynamic viscosity (Morris, Pa s), XSPH smoothing
-F_MASS, F_RHO0, F_B, F_MU, F_SIGMA, F_ETA, F_XSPH = range(7)
+# viscosity mu, tension sigma, dynamic viscosity (Morris, Pa s), XSPH smoothing, and 1 / mass (so
+# that a pair loop multiplies where it divided: kernels.w_dwr says why that matters)
+F_MASS, F_RHO0, F_B, F_MU, F_SIGMA, F_ETA, F_XSPH, F_INV_MASS = range(8)
 # Collider table columns: 8 shape params, restitution, friction, sign (+1 obstacle, -1 container).
 # A mesh's shape params: its distance grid's origin (3), voxel size, node counts (3) and offset
 # into the flat array of all mesh grids (exact in float32 up to 2^24).
@@ -142,13 +143,14 @@ class SolverParams:
 
     @cached_property
     def fluid_table(self) -> np.ndarray:
-        """(F, 7) float32: mass, rho0, B, mu, sigma, eta, xsph (columns F_*). eta is the dynamic
-        viscosity times `viscous_scale`, which every use of it (Morris's term, the walls' no-slip
-        pull, the explicit limit) takes."""
+        """(F, 8) float32: mass, rho0, B, mu, sigma, eta, xsph, 1 / mass (columns F_*). eta is
+        the dynamic viscosity times `viscous_scale`, which every use of it (Morris's term, the
+        walls' no-slip pull, the explicit limit) takes."""
         c = self.speed_of_sound
         return np.array([[f.rest_density / self.lattice_density, f.rest_density,
                           f.rest_density * c * c / self.gamma, f.viscosity, f.surface_tension,
-                          f.dynamic_viscosity * self.viscous_scale, f.xsph]
+                          f.dynamic_viscosity * self.viscous_scale, f.xsph,
+                          self.lattice_density / f.rest_density]
                          for f in self.fluids], dtype=np.float32)
 
     @cached_property

@@ -56,6 +56,10 @@ def test_kernel_integrates_to_one(name):
 
 @pytest.mark.parametrize("name", ["poly6", "spiky", "cubic", "wendland"])
 def test_taichi_kernels_match_numpy_and_gradients_are_odd(name):
+    """K.w and K.grad_w against the NumPy kernels, and the pair loops' K.w_dwr (W and dW/dr / r
+    from r^2 and 1 / h, without the divisions) against the same, within h: the same functions
+    in another order of float32 operations, so to float32 round-off (rtol 2e-5 and 1e-4 as w's
+    and grad_w's, a small absolute floor where the kernel passes through 0)."""
     import taichi as ti
 
     kind, h = ALL[name], 0.05
@@ -66,17 +70,22 @@ def test_taichi_kernels_match_numpy_and_gradients_are_odd(name):
     wout = ti.ndarray(ti.f32, 256)
     gpos = ti.Vector.ndarray(3, ti.f32, 256)
     gneg = ti.Vector.ndarray(3, ti.f32, 256)
+    wpair = ti.ndarray(ti.f32, 256)
+    fpair = ti.ndarray(ti.f32, 256)
 
     @ti.kernel
     def evaluate(v: ti.types.ndarray(dtype=ti.math.vec3, ndim=1), w: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                 gp: ti.types.ndarray(dtype=ti.math.vec3, ndim=1), gn: ti.types.ndarray(dtype=ti.math.vec3, ndim=1)):
+                 gp: ti.types.ndarray(dtype=ti.math.vec3, ndim=1), gn: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+                 wp: ti.types.ndarray(dtype=ti.f32, ndim=1), fp: ti.types.ndarray(dtype=ti.f32, ndim=1)):
         for i in v:
             r = v[i].norm()
             w[i] = K.w(kind, r, h)
             gp[i] = K.grad_w(kind, v[i], r, h)
             gn[i] = K.grad_w(kind, -v[i], r, h)
+            if r < h:
+                wp[i], fp[i] = K.w_dwr(kind, v[i].norm_sqr(), 1.0 / h)
 
-    evaluate(vin, wout, gpos, gneg)
+    evaluate(vin, wout, gpos, gneg, wpair, fpair)
     r = np.linalg.norm(vecs, axis=1)
     np.testing.assert_allclose(wout.to_numpy(), K.w_np(kind, r, h), rtol=2e-5, atol=1e-3 * K.w_np(kind, 0.0, h))
     # grad W(-r) = -grad W(r): exactly, since the kernels are radial
@@ -84,6 +93,12 @@ def test_taichi_kernels_match_numpy_and_gradients_are_odd(name):
     # and the gradient is dW/dr along r_hat, matching the NumPy derivative
     expect = (K.dw_np(kind, r, h) / r)[:, None] * vecs
     np.testing.assert_allclose(gpos.to_numpy(), expect, rtol=1e-4, atol=1e-4 * np.abs(expect).max())
+    inside = r < h
+    assert inside.sum() > 100
+    np.testing.assert_allclose(wpair.to_numpy()[inside], K.w_np(kind, r, h)[inside], rtol=2e-5,
+                               atol=1e-6 * K.w_np(kind, 0.0, h))
+    f = (K.dw_np(kind, r, h) / r)[inside]
+    np.testing.assert_allclose(fpair.to_numpy()[inside], f, rtol=1e-4, atol=1e-6 * np.abs(f).max())
 
 
 @pytest.mark.parametrize("solver, fill", [("wcsph", "cubic"), ("dfsph", "cubic"), ("dfsph", "fcc")])
