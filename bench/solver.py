@@ -13,6 +13,15 @@ wall second, with peak resident memory.
 
 Steps are timed after Taichi's kernel compilation (one warm-up step), like the anchor times
 stepping after its init.
+
+The step count is a draw: a CFL step follows the fastest particle, here a few thrown up the back
+edges of the tank at 0.05-0.2 s (bench/steps.py), and the round-off of any change to the solver's
+arithmetic moves them. Started 1 um off the lattice (`--seeds K`: K more runs of our side, each
+particle moved by a uniform +-1 um, seeds 1 ... K), the same code took 319 to 354 steps
+(bench/RESULTS.md, forty-third session). Judge a change to a step's cost by bench/phases.py's
+milliseconds a step, and the shot's speed by the seeds' spread.
+
+    .venv/bin/python bench/solver.py --only sphshot --seeds 4
 """
 from __future__ import annotations
 
@@ -93,6 +102,7 @@ def child(args) -> None:
 
     arch = init_taichi(args.backend, args.threads)
     from pipeline.stages.sim import initial_state, make_solver, solver_params
+    import numpy as np
     import taichi as ti
 
     if args.skin is not None:
@@ -101,7 +111,12 @@ def child(args) -> None:
     spec = scene(args.particles, args.radius, args.solver, fluid=args.fluid)
     params = solver_params(spec)
     t0 = time.perf_counter()
-    s = make_solver(spec, params, initial_state(spec, params))
+    state = initial_state(spec, params)
+    if args.seed:                 # the same water, 1 um off the lattice (the module docstring)
+        rng = np.random.default_rng(args.seed)
+        state["position"] = (state["position"] + rng.uniform(-1e-6, 1e-6, state["position"].shape)
+                             ).astype(state["position"].dtype)
+    s = make_solver(spec, params, state)
     s.step()                      # compile and warm up (one step, and a batch as the stage runs them)
     if args.solver == "dfsph":
         # DFSPH's first step has no divergence solve (no dt_{n-1/2} yet), so its sweeps compiled
@@ -169,6 +184,8 @@ def run_sphshot(args) -> dict:
         cmd.append("--device-bytes")
     if args.skin is not None:
         cmd += ["--skin", str(args.skin)]
+    if getattr(args, "seed", 0):
+        cmd += ["--seed", str(args.seed)]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     m = re.search(r"^RESULT (\{.*\})$", proc.stdout, re.M)
     if proc.returncode != 0 or not m:
@@ -213,6 +230,9 @@ def main() -> None:
     ap.add_argument("--phases", action="store_true", help="time each step phase (adds syncs)")
     ap.add_argument("--device-bytes", action="store_true", help="report the solver's device bytes per particle")
     ap.add_argument("--skin", type=float, help="Verlet skin in units of h (default: the solver's)")
+    ap.add_argument("--seeds", type=int, default=0,
+                    help="also run our side this many times from the lattice moved by +-1 um (the step count's spread)")
+    ap.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -223,6 +243,11 @@ def main() -> None:
     rows = []
     if args.only != "anchor":
         rows.append(run_sphshot(args))
+    if args.only != "anchor":
+        for seed in range(1, args.seeds + 1):
+            r = run_sphshot(argparse.Namespace(**{**vars(args), "seed": seed}))
+            r["solver"] += f"-seed{seed}"
+            rows.append(r)
     if args.only != "sphshot":
         rows += run_anchor(args)
     keys = ["particles", "steps", "sim_time_s", "wall_s", "ms_per_step", "particle_steps_per_s",
