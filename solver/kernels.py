@@ -114,14 +114,15 @@ def dw(kind: ti.template(), r: ti.f32, h: ti.f32) -> ti.f32:
 
 @ti.func
 def w_dwr(kind: ti.template(), r2: ti.f32, inv_h: ti.f32):
-    """(W(r), dW/dr / r) at the squared distance r2 (0 < r2 < h^2) for a pair loop, with
-    inv_h = 1 / h computed once before it: the normalisations are powers of inv_h, and a pair
-    costs at most one square root and one division (the cubic spline's outer part and spiky's
-    1 / r; poly6 neither). w and dw divide by h and by the normalisation at every call, and in a
-    loop those divisions stay divisions: Taichi's fast math lets LLVM reassociate but not turn
-    x / c into x * (1 / c), and a loop that stores (the density pass) reloads h every pair. Their
-    five divisions a pair, each on the one divider with the square root, bound DFSPH's density
-    pass: this made it 13 % faster (bench/RESULTS.md, forty-third session)."""
+    """(W(r), dW/dr / r) at the squared distance r2 (0 < r2 <= h^2; W alone from r2 = 0 on, and
+    0 at h) for a pair loop, with inv_h = 1 / h computed once before it: the normalisations are
+    powers of inv_h, and a pair costs at most one square root and one division (the cubic
+    spline's outer part and spiky's 1 / r; poly6 neither). w and dw divide by h and by the
+    normalisation at every call, and in a loop those divisions stay divisions: Taichi's fast math
+    lets LLVM reassociate but not turn x / c into x * (1 / c), and a loop that stores (the density
+    pass) reloads h every pair. Their five divisions a pair, each on the one divider with the
+    square root, bound DFSPH's density pass: without them it takes 0.80-0.85 of its time
+    (bench/RESULTS.md, forty-third session)."""
     w, f = 0.0, 0.0
     if ti.static(kind == POLY6):
         d = 1.0 - r2 * inv_h * inv_h

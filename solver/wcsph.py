@@ -29,10 +29,11 @@ from .types import D1, F1, F2, F4, I1, P_H, V3, T, box_of, consts_of, ivec2, rai
 
 
 @ti.func
-def morris(eta: ti.f32, dj: ti.f32, rv, r: ti.f32, h: ti.f32, dv, kern: ti.template()):
+def morris(eta: ti.f32, inv_dj: ti.f32, f: ti.f32, r2: ti.f32, h: ti.f32, dv):
     """One pair's term of Morris et al. 1997's viscosity in number-density form, times
-    m_i delta_i: (eta_i + eta_j) / delta_j (x_ij . grad W_ij) / (r^2 + 0.01 h^2) (v_i - v_j)."""
-    return eta / dj * rv.dot(K.grad_w(kern, rv, r, h)) / (r * r + 0.01 * h * h) * dv
+    m_i delta_i: (eta_i + eta_j) / delta_j (x_ij . grad W_ij) / (r^2 + 0.01 h^2) (v_i - v_j),
+    with x_ij . grad W_ij = f r^2 (f = dW/dr / r: kernels.w_dwr) and inv_dj = 1 / delta_j."""
+    return eta * inv_dj * f * r2 / (r2 + 0.01 * h * h) * dv
 
 
 @ti.func
@@ -90,6 +91,7 @@ def forces_pass(position: T, velocity: T, acceleration: T, fluid: T, number_dens
     """Accelerations (pressure, viscosity, surface tension, gravity, walls), then the step length
     from the largest speed and acceleration (kept in stats[0], stats[1]; see time_step)."""
     h = prm[P_H]
+    inv_h = 1.0 / h
     if gate_open(ctl):
         stats[0] = 0.0
         stats[1] = 0.0
@@ -108,16 +110,22 @@ def forces_pass(position: T, velocity: T, acceleration: T, fluid: T, number_dens
             lap = K.lap_poly6(0.0, h) / di      # color field includes the particle itself
             base = i * lay.x
             step = list_step(lay, rows)
+            # (the pair loop multiplies by 1 / h, 1 / delta_j and lap_viscosity's constant, each
+            # divided once: kernels.w_dwr says why that matters)
+            visc = K.lap_viscosity(0.0, h) / (h * di)
             for m in range(near_count[i]):        # the pairs within h (see k_density)
                 j = near[base + m * step]
                 rv = xi - position[j]
-                r = ti.sqrt(rv.norm_sqr())
-                dj = number_density[j]
-                a_p -= (pi_ + pressure[j] / (dj * dj)) * K.grad_w(pkern, rv, r, h)
+                r2 = rv.norm_sqr()
+                r = ti.sqrt(r2)
+                inv_dj = 1.0 / number_density[j]
+                _w, f = K.w_dwr(pkern, r2, inv_h)
+                a_p -= (pi_ + pressure[j] * inv_dj * inv_dj) * f * rv
                 mu = 0.5 * (ftab[fi, F_MU] + ftab[fluid[j], F_MU])
-                a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
-                a_eta += morris(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], dj, rv, r, h, vi - velocity[j], pkern)
+                a_v += mu * (velocity[j] - vi) * inv_dj * visc * (h - r)
+                a_eta += morris(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], inv_dj, f, r2, h, vi - velocity[j])
                 if ti.static(tension):
+                    dj = number_density[j]
                     n += K.grad_w(K.POLY6, rv, r, h) / dj
                     lap += K.lap_poly6(r, h) / dj
             a = (c.grad_scale * a_p + a_v + a_eta / di) / mi + c.gravity
