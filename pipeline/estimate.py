@@ -5,7 +5,11 @@ Figures per unit, measured (bench/RESULTS.md, eleventh session):
   H200; the two neighbour lists are ~800 of it; DFSPH keeps one list on a GPU since the
   thirteenth session, and two again on the CPU since the forty-second, a copy in narrower
   rows: 246 MB peak resident for the CPU bench's 50,622 particles, 234 with one), plus host
-  copies of the state for frames and checkpoints: SIM_BYTES per particle in all;
+  copies of the state for frames and checkpoints: SIM_BYTES per particle in all. A DFSPH shot
+  whose viscosity can pass its explicit limit within sim.max_dt solves it implicitly
+  (solver.viscosity), and from the first such step holds the CG's six arrays (48 bytes a
+  particle) and each list slot's pair weight (4 bytes, 64 slots on the CPU bench): VISCOUS_BYTES
+  more (forty-third session: the bench's peak 238.7 MB against 232.7);
 - surfacing: about 36 grid nodes a particle at the default 0.75 r cell (18.0M nodes for 502,606
   particles) and about 26 bytes a node at the peak (color, velocity band, marching cubes'
   arrays: 720 MB for the 500k frame with velocities, 250 MB of it Python and Taichi). A splash
@@ -51,10 +55,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from solver.lattice import Domain, site_count
+from solver.stability import explicit_viscous_limit
 
 from .stages import STAGES
 
 SIM_BYTES = 1_200              # per particle: device arrays and host copies
+VISCOUS_BYTES = 320            # per particle, where DFSPH may solve viscosity implicitly (docstring)
 NODE_BYTES = 38                # per surfacing grid node, at the peak of one frame (module docstring)
 NODES_PER_CELL_VOLUME = 1.9    # blocks reach a support beyond the fluid: 36 nodes/particle at 0.75 r
 VOXEL_BYTES = 12               # per collider distance-grid voxel while OpenVDB builds it
@@ -141,8 +147,19 @@ def estimate(spec) -> Estimate:
         if _reads_level_set(spec):
             volume = math.prod(hi - lo for lo, hi in zip(spec.domain.min, spec.domain.max))
             render += LEVEL_SET_BYTES * volume / cell / cell / cell
-    return Estimate(particles, sim=particles * SIM_BYTES, colliders=voxels * VOXEL_BYTES,
+    sim = particles * (SIM_BYTES + (VISCOUS_BYTES if _implicit_viscosity(spec) else 0))
+    return Estimate(particles, sim=sim, colliders=voxels * VOXEL_BYTES,
                     surface=SURFACE_BYTES + nodes * NODE_BYTES, render=render, disk=disk)
+
+
+def _implicit_viscosity(spec) -> bool:
+    """Whether a DFSPH step can pass Morris's explicit limit (the solver then takes viscosity
+    implicitly, solver.dfsph.kick): its steps are never longer than sim.max_dt. (The solver's
+    limit takes eta times the fill lattice's viscous_scale, within a few per cent of 1.)"""
+    if spec.sim.solver != "dfsph":
+        return False
+    nu = [spec.fluid_viscosity(fi)[1] / f.rest_density for fi, f in enumerate(spec.fluids)]
+    return explicit_viscous_limit(spec.sim.kernel_radius * spec.sim.particle_radius, nu) < spec.sim.max_dt
 
 
 def _reads_level_set(spec) -> bool:

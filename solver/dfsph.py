@@ -66,7 +66,8 @@ from .boundaries import boundary_sums, mirror_walls, reflect, reflect_velocity, 
 from .errors import Unstable
 from .neighbours import k_gather_f1, list_step
 from .params import F_ETA, F_INV_MASS, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, NO_SLIP_ROWS, SolverParams
-from .sph import NOT_FINITE, SPHSolver, explicit_viscous_limit
+from .sph import NOT_FINITE, SPHSolver
+from .stability import explicit_viscous_limit
 from .sums import Summer, chunk_sums_pass, sweep_open, total_pass
 from .types import D1, F1, F2, F4, I1, IV2, P_H, V3, T, box_of, consts_of, ivec2, raise_max, vec3
 from .viscosity import ImplicitViscosity

@@ -28,6 +28,7 @@ from .errors import TooLarge, Unstable
 from .neighbours import (CELL_DIV, GROUP, SCAN_BLOCK, SKIN, exclusive_scan, k_clear2, k_count, k_gather, k_moved_beyond,
                          k_neighbours, k_rebuild, k_scatter)
 from .params import F_ETA, F_MU, F_RHO0, F_SIGMA, SolverParams
+from .stability import explicit_viscous_limit
 from .types import ivec2, ivec3, pack_constants, vec3
 from .wcsph import k_advance, k_density, k_forces, k_step, k_synced_velocity
 
@@ -444,13 +445,6 @@ class SPHSolver:
 
     def controller(self) -> dict[str, float]:
         return {"time": self.time, "step": self.steps, "dt_prev": self.dt_prev}
-
-
-def explicit_viscous_limit(h: float, nu) -> float:
-    """The longest stable explicit step for kinematic viscosities nu (m^2/s): (h / 2)^2 / (8 nu)
-    for the largest (inf without viscosity)."""
-    nu_max = float(np.max(nu))
-    return 0.125 * (0.5 * h) ** 2 / nu_max if nu_max > 0 else math.inf
 
 
 # What a solver says when a particle's speed or acceleration is NaN or infinite (types.raise_max

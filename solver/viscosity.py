@@ -42,9 +42,10 @@ def weight(eta: ti.f32, di: ti.f32, dj: ti.f32, f: ti.f32, r2: ti.f32, h: ti.f32
 @ti.kernel
 def k_first_residual(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1, near_count: I1,
                      gfac: F1, lay: ivec2, rows: ti.template(), ftab: F2, wall: F1, dt: ti.f32, h: ti.f32, diag: F1,
-                     res: V3, direction: V3, rr: F1, rz: F1):
+                     res: V3, direction: V3, rr: F1, rz: F1, wpair: F1):
     """From x0 = v*: r = M v* - A v* = -dt L v*, the diagonal of A, the first direction z = r / diag,
-    and per particle r.r and r.z."""
+    and per particle r.r and r.z; each pair's w_ij kept beside its list entry (`wpair`, laid out
+    as gfac), for the iterations' products."""
     for i in position:
         xi, vi = position[i], velocity[i]
         fi, di = fluid[i], number_density[i]
@@ -56,6 +57,7 @@ def k_first_residual(position: V3, velocity: V3, fluid: I1, number_density: F1, 
             j = near[base + m * step]
             w = weight(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], di, number_density[j], gfac[base + m * step],
                        (xi - position[j]).norm_sqr(), h)
+            wpair[base + m * step] = w
             wsum += w
             lv += w * (vi - velocity[j])
         d = ftab[fi, F_MASS] + dt * wsum
@@ -68,21 +70,20 @@ def k_first_residual(position: V3, velocity: V3, fluid: I1, number_density: F1, 
 
 
 @ti.kernel
-def k_product(position: V3, fluid: I1, number_density: F1, near: I1, near_count: I1, gfac: F1, lay: ivec2,
-              rows: ti.template(), ftab: F2, wall: F1, dt: ti.f32, h: ti.f32, p: V3, ap: V3, pap: F1):
-    """ap = A p and per particle p . A p."""
-    for i in position:
-        xi, pi = position[i], p[i]
-        fi, di = fluid[i], number_density[i]
+def k_product(fluid: I1, near: I1, near_count: I1, wpair: F1, lay: ivec2, rows: ti.template(), ftab: F2, wall: F1,
+              dt: ti.f32, p: V3, ap: V3, pap: F1):
+    """ap = A p and per particle p . A p, with the pairs' w_ij as k_first_residual kept them (the
+    positions and densities do not change during the solve; recomputed, each took a division and
+    three gathers a pair, every iteration)."""
+    for i in p:
+        pi = p[i]
         lp = wall[i] * pi
         base = i * lay.x
         step = list_step(lay, rows)
         for m in range(near_count[i]):
             j = near[base + m * step]
-            w = weight(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], di, number_density[j], gfac[base + m * step],
-                       (xi - position[j]).norm_sqr(), h)
-            lp += w * (pi - p[j])
-        a = ftab[fi, F_MASS] * pi + dt * lp
+            lp += wpair[base + m * step] * (pi - p[j])
+        a = ftab[fluid[i], F_MASS] * pi + dt * lp
         ap[i] = a
         pap[i] = pi.dot(a)
 
@@ -112,6 +113,7 @@ class ImplicitViscosity:
         self.tolerance, self.max_iterations = float(tolerance), int(max_iterations)
         self.diag, self.rr, self.rz = (ti.ndarray(ti.f32, n) for _ in range(3))
         self.res, self.p, self.ap = (ti.Vector.ndarray(3, ti.f32, shape=n) for _ in range(3))
+        self.wpair = None           # w_ij beside each list entry, as large as the lists' gfac
         summer = Summer(n)
         self._sum, self._sums = summer.total, summer.totals
 
@@ -119,15 +121,16 @@ class ImplicitViscosity:
               h: float) -> tuple[int, float]:
         """Replace `velocity` (v*) by the solution of A v = M v*. Returns (iterations, the final
         residual relative to the first)."""
+        if self.wpair is None or self.wpair.shape[0] != gfac.shape[0]:     # (the lists grew)
+            self.wpair = ti.ndarray(ti.f32, gfac.shape[0])
         k_first_residual(position, velocity, fluid, number_density, near, near_count, gfac, lay, rows, ftab, wall,
-                         dt, h, self.diag, self.res, self.p, self.rr, self.rz)
+                         dt, h, self.diag, self.res, self.p, self.rr, self.rz, self.wpair)
         rr0, rz = self._sums(self.rr, self.rz)
         if rr0 <= 0.0:
             return 0, 0.0
         rr, iterations = rr0, 0
         while iterations < self.max_iterations and rr > self.tolerance ** 2 * rr0:
-            k_product(position, fluid, number_density, near, near_count, gfac, lay, rows, ftab, wall, dt, h, self.p,
-                      self.ap, self.rr)
+            k_product(fluid, near, near_count, self.wpair, lay, rows, ftab, wall, dt, self.p, self.ap, self.rr)
             pap = self._sum(self.rr)
             if not pap > 0.0:       # round-off at convergence, or a broken matrix: stop where we are
                 break
