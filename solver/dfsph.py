@@ -71,7 +71,7 @@ from .stability import explicit_viscous_limit
 from .sums import Summer, chunk_sums_pass, sweep_open, total_pass
 from .types import D1, F1, F2, F4, I1, IV2, P_H, V3, T, box_of, consts_of, ivec2, raise_max, vec3
 from .viscosity import ImplicitViscosity
-from .wcsph import color_tension
+from .wcsph import color_tension, morris
 
 # A particle with fewer neighbours than this is at a free surface and takes no part in the
 # divergence solve (its neighbourhood is too thin to tell expansion from splashing apart);
@@ -551,10 +551,8 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
                 mu = 0.5 * (ftab[fi, F_MU] + ftab[fj, F_MU])
                 a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
             if ti.static(terms & ETA_TERM):
-                # Morris's pair term (wcsph.morris) with x_ij . grad W_ij = gfac r^2 from the density
-                # pass, one division a pair (kernels.w_dwr says why that matters)
-                a_eta += ((ftab[fi, F_ETA] + ftab[fj, F_ETA]) * gfac[base + m * step] * r2
-                          / (dj * (r2 + 0.01 * h * h)) * (vi - velocity[j]))
+                # with the pair's dW/dr / r from the density pass
+                a_eta += morris(ftab[fi, F_ETA] + ftab[fj, F_ETA], dj, gfac[base + m * step], r2, h, vi - velocity[j])
             if ti.static(terms & XSPH_TERM):
                 smooth += (velocity[j] - vi) * K.w(kern, r, h) / dj
             if ti.static(tension == MUELLER):

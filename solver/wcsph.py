@@ -29,11 +29,11 @@ from .types import D1, F1, F2, F4, I1, P_H, V3, T, box_of, consts_of, ivec2, rai
 
 
 @ti.func
-def morris(eta: ti.f32, inv_dj: ti.f32, f: ti.f32, r2: ti.f32, h: ti.f32, dv):
+def morris(eta: ti.f32, dj: ti.f32, f: ti.f32, r2: ti.f32, h: ti.f32, dv):
     """One pair's term of Morris et al. 1997's viscosity in number-density form, times
     m_i delta_i: (eta_i + eta_j) / delta_j (x_ij . grad W_ij) / (r^2 + 0.01 h^2) (v_i - v_j),
-    with x_ij . grad W_ij = f r^2 (f = dW/dr / r: kernels.w_dwr) and inv_dj = 1 / delta_j."""
-    return eta * inv_dj * f * r2 / (r2 + 0.01 * h * h) * dv
+    with x_ij . grad W_ij = f r^2 (f = dW/dr / r: kernels.w_dwr), in one division."""
+    return eta * f * r2 / (dj * (r2 + 0.01 * h * h)) * dv
 
 
 @ti.func
@@ -123,7 +123,7 @@ def forces_pass(position: T, velocity: T, acceleration: T, fluid: T, number_dens
                 a_p -= (pi_ + pressure[j] * inv_dj * inv_dj) * f * rv
                 mu = 0.5 * (ftab[fi, F_MU] + ftab[fluid[j], F_MU])
                 a_v += mu * (velocity[j] - vi) * inv_dj * visc * (h - r)
-                a_eta += morris(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], inv_dj, f, r2, h, vi - velocity[j])
+                a_eta += morris(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], number_density[j], f, r2, h, vi - velocity[j])
                 if ti.static(tension):
                     dj = number_density[j]
                     n += K.grad_w(K.POLY6, rv, r, h) / dj
