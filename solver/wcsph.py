@@ -110,8 +110,9 @@ def forces_pass(position: T, velocity: T, acceleration: T, fluid: T, number_dens
             lap = K.lap_poly6(0.0, h) / di      # color field includes the particle itself
             base = i * lay.x
             step = list_step(lay, rows)
-            # (the pair loop multiplies by 1 / h, 1 / delta_j and lap_viscosity's constant, each
-            # divided once: kernels.w_dwr says why that matters)
+            # (the pressure and Müller terms multiply by 1 / h, 1 / delta_j and lap_viscosity's
+            # constant, each divided once, and Morris's term divides once: kernels.w_dwr says why
+            # that matters)
             visc = K.lap_viscosity(0.0, h) / (h * di)
             for m in range(near_count[i]):        # the pairs within h (see k_density)
                 j = near[base + m * step]
