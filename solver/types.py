@@ -2,9 +2,11 @@
 import taichi as ti
 
 vec3 = ti.math.vec3
+vec4 = ti.math.vec4
 ivec3 = ti.math.ivec3
 ivec2 = ti.math.ivec2
 V3 = ti.types.ndarray(dtype=vec3, ndim=1)
+V4 = ti.types.ndarray(dtype=vec4, ndim=1)
 F1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 IV2 = ti.types.ndarray(dtype=ivec2, ndim=1)
