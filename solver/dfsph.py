@@ -44,12 +44,16 @@ One step (Bender & Koschier 2017, Algorithm 1):
      target (at half weight: LOOSE), until its mean times dt / delta0 is under
      max_divergence_error
   3. non-pressure accelerations (gravity, viscosity, surface tension)
-  4. time step: CFL on the particle speed alone, dt = cfl r / max |v + a dt|, capped by max_dt
+  4. time step: CFL on the particles' speeds (no speed of sound): on how fast neighbours close
+     in, dt = cfl r / v_close, never shorter than on the speed alone, cfl r / max |v + a dt|;
+     the particles fast enough to outrun their neighbourhood searched to 2h; capped by max_dt
+     (DFSPHSolver.stable_dt)
   5. v* = v + dt a; a viscosity in Pa s is taken implicitly where the step is beyond its
      explicit limit (solver.viscosity)
   6. density solve: delta* = delta + dt D delta / Dt -> delta0 where compressed (at a free
      surface, towards the particle's own target: SURFACE_FROM), until the mean relative
-     compression is under max_density_error
+     compression is under max_density_error (Chebyshev-accelerated in steps longer than the
+     speed CFL's: CHEBYSHEV_RHO)
   7. drift x += dt v*, collide
 Both solves start from the previous step's kappa (warm start): its push (1) is summed by the
 pass over the pairs just before the solve (step 1's for step 2, step 3's for step 6), and the
@@ -62,7 +66,8 @@ import numpy as np
 import taichi as ti
 
 from . import kernels as K
-from .boundaries import boundary_sums, collider_sdf, mirror_walls, reflect, reflect_velocity, wall_viscosity
+from .boundaries import (boundary_sums, collider_sdf, mirror_walls, nearest_walls, reflect, reflect_velocity,
+                         wall_viscosity)
 from .errors import Unstable
 from .neighbours import cell_of, flat, k_gather_f1, list_step
 from .params import F_ETA, F_INV_MASS, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, NO_SLIP_ROWS, SolverParams
@@ -86,6 +91,25 @@ MIN_DENSITY_ITERATIONS, MIN_DIVERGENCE_ITERATIONS = 2, 2
 # has changed (a particle that left the bulk still gets pushed; measured: the whole density
 # kappa blew a resting column up within 2 s); SPlisHSPlasH takes half.
 WARM_START = 0.5
+# Chebyshev's semi-iterative acceleration of the density solve's Jacobi sweeps (Wang 2015, "A
+# Chebyshev semi-iterative approach for accelerating projective and position-based dynamics"):
+# from sweep CHEBYSHEV_FROM on, sweep k+1 lands at omega_{k+1} (x^_{k+1} - x_{k-1}) + x_{k-1}, x^
+# the plain sweep's result (velocities and kappa total alike), with omega_S = 2 / (2 - rho^2) and
+# omega_{k+1} = 4 / (4 - rho^2 omega_k); rho stands for the Jacobi iteration's spectral radius.
+# On bench/solver.py's dam break with the closing-speed step (stable_dt) 0.9 took the density
+# solve from 14.8 to 6.8 sweeps a step at the same bound, 0.95 to 5.0; 0.98 to 3.9, but the
+# divergence solve after it rose from 3.3 to 4.4 sweeps (bench/RESULTS.md, forty-ninth and
+# fiftieth sessions). 0.9, not 0.95: the example's mesh volume peaked at +1.65 % of its first
+# frame's with 0.9 and at +2.01 % with 0.95 (issue 18's bound: 2 %), for 3 % more time on the
+# bench. The sweep that ends a solve is a plain one, so the error the stop reads is
+# never extrapolated past. It runs only in steps that the closing-speed CFL made longer than the
+# speed CFL's (DFSPHSolver.accelerated): the extrapolation overshoots the one-sided solve (kappa
+# only where compressed) into expansion that no later sweep pulls back, and water at rest, whose
+# step the speed floor sets, gets noisier (the oil-on-water layers of tests/test_dfsph.py: 26.9
+# mm/s rms against 3.6 when every solve was accelerated). The divergence solve is not
+# accelerated: it takes 2-3 sweeps a step, and 0.9 on it changed nothing.
+CHEBYSHEV_RHO = {0: 0.0, 1: 0.9}      # DIVERGENCE, DENSITY
+CHEBYSHEV_FROM = 2
 # A particle at a free surface misses the fluid beyond it: on the fill lattice's flat top its
 # number density reads 0.78 delta0 (cubic spline, h = 4 r). Pushing only where delta > delta0,
 # DFSPH let the top layers sink into the ones below until their sums read delta0 (a settled pool
@@ -386,10 +410,12 @@ def density_kappa_pass(xk: T, v4: T, number_density: T, target: T, near: T, near
 
 @ti.func
 def apply_pass(xk: T, v4: T, fluid: T, near: T, near_count: T, gfac: T, lay: T, rows: T, img: T, img_g: T,
-               img_span: T, total: T, wall_grad: T, dt: ti.f32, ftab: T, go: T):
+               img_span: T, total: T, wall_grad: T, dt: ti.f32, ftab: T, go: T, delta: T, omega: ti.f32):
     """Equation (1) with this sweep's kappa (xk's w); total += kappa (the step's pressure, and
     the next step's warm start). The walls' images j' carry kappa_j. The pairs are summed
-    alternately into two sums, as density_rate's."""
+    alternately into two sums, as density_rate's. With Chebyshev's acceleration (CHEBYSHEV_RHO)
+    the sweep's change u = (velocity change, kappa) becomes omega u + (omega - 1) delta_i,
+    delta_i the last sweep's change (x_{k+1} - x_k, so that x_{k-1} need not be kept)."""
     for i in xk:
         if sweep_open(go):
             xi = xk[i].xyz
@@ -406,13 +432,18 @@ def apply_pass(xk: T, v4: T, fluid: T, near: T, near_count: T, gfac: T, lay: T, 
             if n % 2 == 1:
                 push += push_term(xi, ki, base + (n - 1) * step, near, xk, gfac)
             push = image_terms(push + (p0 + p1), i, img, img_g, img_span, xk, ki, False, True)
-            v4[i] = vec4(v4[i].xyz - dt / ftab[fluid[i], F_MASS] * push, 0.0)
-            total[i] += ki
+            u = vec4(-dt / ftab[fluid[i], F_MASS] * push, ki)
+            if ti.static(not isinstance(delta, type(None))):
+                if omega > 0.0:
+                    u = omega * u + (omega - 1.0) * delta[i]
+                delta[i] = u
+            v4[i] = vec4(v4[i].xyz + u.xyz, 0.0)
+            total[i] += u.w
 
 
 @ti.func
 def warm_start_pass(position: T, velocity: T, xk: T, v4: T, fluid: T, total: T, warm_push: T, dt: ti.f32,
-                    warm: ti.f32, ftab: T):
+                    warm: ti.f32, ftab: T, delta: T):
     """The warm start (Bender & Koschier 2017, Algorithms 2 and 3): equation (1) with kappa =
     warm times the last solve's total, and total *= warm. A push is linear in kappa, so this is
     warm times the push of the total, which the neighbour pass before the solve summed
@@ -423,12 +454,17 @@ def warm_start_pass(position: T, velocity: T, xk: T, v4: T, fluid: T, total: T, 
         v4[i] = vec4(velocity[i] - dt * warm / ftab[fluid[i], F_MASS] * warm_push[i], 0.0)
         xk[i] = vec4(position[i], 0.0)
         total[i] *= warm
+        if ti.static(not isinstance(delta, type(None))):
+            delta[i] = vec4(0.0)
 
 
 @ti.kernel
 def k_warm_start(position: V3, velocity: V3, xk: V4, v4: V4, fluid: I1, total: F1, warm_push: V3, dt: ti.f32,
-                 warm: ti.f32, ftab: F2):
-    warm_start_pass(position, velocity, xk, v4, fluid, total, warm_push, dt, warm, ftab)
+                 warm: ti.f32, ftab: F2, delta: V4, chebyshev: ti.template()):
+    if ti.static(chebyshev):
+        warm_start_pass(position, velocity, xk, v4, fluid, total, warm_push, dt, warm, ftab, delta)
+    else:
+        warm_start_pass(position, velocity, xk, v4, fluid, total, warm_push, dt, warm, ftab, None)
 
 
 @ti.kernel
@@ -456,9 +492,14 @@ def k_density_kappa(xk: V4, v4: V4, number_density: F1, target: F1, near: I1, ne
 
 @ti.kernel
 def k_apply_kappa(xk: V4, v4: V4, fluid: I1, near: I1, near_count: I1, gfac: F1, lay: ivec2, rows: ti.template(),
-                  img: I1, img_g: V3, img_span: IV2, total: F1, wall_grad: V3, dt: ti.f32, ftab: F2):
-    apply_pass(xk, v4, fluid, near, near_count, gfac, lay, rows, img, img_g, img_span, total, wall_grad, dt, ftab,
-               None)
+                  img: I1, img_g: V3, img_span: IV2, total: F1, wall_grad: V3, dt: ti.f32, ftab: F2, delta: V4,
+                  omega: ti.f32, chebyshev: ti.template()):
+    if ti.static(chebyshev):
+        apply_pass(xk, v4, fluid, near, near_count, gfac, lay, rows, img, img_g, img_span, total, wall_grad, dt, ftab,
+                   None, delta, omega)
+    else:
+        apply_pass(xk, v4, fluid, near, near_count, gfac, lay, rows, img, img_g, img_span, total, wall_grad, dt, ftab,
+                   None, None, 1.0)
 
 
 @ti.kernel
@@ -483,17 +524,22 @@ def k_sweeps(position: V3, velocity: V3, xk: V4, v4: V4, fluid: I1, number_densi
              near_count: I1, gfac: F1, lay: ivec2, rows: ti.template(), img: I1, img_g: V3, img_span: IV2, alpha: F1,
              wall_grad: V3, total: F1, warm_push: V3, residual: F1, partial: F1, groups: D1, dt: ti.f32, warm: ti.f32,
              prm: F1, ftab: F2, go: D1, bound: ti.f64, norm: ti.f64, min_iterations: ti.i32, max_iterations: ti.i32,
-             solve: ti.template(), warm_start: ti.template(), count: ti.template()):
+             delta: V4, omegas: F1, solve: ti.template(), warm_start: ti.template(), count: ti.template()):
     """warm_start: first the warm start (total *= warm and applied: warm_start_pass; the
     controller reset); then `count` sweeps, each unless done as Bender & Koschier 2017's Algorithms 2 and 3
     (and SPlisHSPlasH) take it: this kappa and the mean error it removes, then kappa applied
     (total += kappa), one more iteration. Done once that error is within `bound` after
     min_iterations sweeps, or after max_iterations: the last kappa is applied, not computed to be
     thrown away. (The sweeps of one launch are its passes in a row: a launch costs the 2-core CPU's
-    host about 0.25 ms however little its passes do.)"""
+    host about 0.25 ms however little its passes do.) With Chebyshev's acceleration (CHEBYSHEV_RHO
+    of the solve), `omegas` the weight of each sweep (chebyshev_weights) but the last."""
+    chebyshev = ti.static(CHEBYSHEV_RHO[solve] > 0.0)
     if ti.static(warm_start):
         go[DONE], go[ITER], go[ERR] = 0.0, 0.0, 0.0
-        warm_start_pass(position, velocity, xk, v4, fluid, total, warm_push, dt, warm, ftab)
+        if ti.static(chebyshev):
+            warm_start_pass(position, velocity, xk, v4, fluid, total, warm_push, dt, warm, ftab, delta)
+        else:
+            warm_start_pass(position, velocity, xk, v4, fluid, total, warm_push, dt, warm, ftab, None)
     for _sweep in ti.static(range(count)):
         if ti.static(solve == DIVERGENCE):
             divergence_kappa_pass(xk, v4, number_density, target, near, near_count, gfac, lay, rows, img, img_g,
@@ -503,21 +549,44 @@ def k_sweeps(position: V3, velocity: V3, xk: V4, v4: V4, fluid: I1, number_densi
                                img_span, alpha, wall_grad, residual, dt, prm, go)
         chunk_sums_pass(residual, partial, go)
         s = total_pass(partial, groups, go)
-        apply_pass(xk, v4, fluid, near, near_count, gfac, lay, rows, img, img_g, img_span, total, wall_grad, dt, ftab,
-                   go)
+        if ti.static(chebyshev):
+            omega = 0.0
+            k = ti.cast(go[ITER], ti.i32)
+            if not last_sweep(s / norm, bound, k, min_iterations, max_iterations):
+                omega = omegas[ti.min(k, omegas.shape[0] - 1)]
+            apply_pass(xk, v4, fluid, near, near_count, gfac, lay, rows, img, img_g, img_span, total, wall_grad, dt,
+                       ftab, go, delta, omega)
+        else:
+            apply_pass(xk, v4, fluid, near, near_count, gfac, lay, rows, img, img_g, img_span, total, wall_grad, dt,
+                       ftab, go, None, 1.0)
         if go[DONE] < 0.5:
             go[ITER] += 1.0
             go[ERR] = s / norm
-            if (go[ERR] <= bound and go[ITER] >= min_iterations) or go[ITER] >= max_iterations:
+            if last_sweep(go[ERR], bound, ti.cast(go[ITER], ti.i32) - 1, min_iterations, max_iterations):
                 go[DONE] = 1.0
+
+
+@ti.func
+def last_sweep(err, bound, k, min_iterations, max_iterations) -> bool:
+    """Whether sweep k (from 0), whose kappa removes the mean error err, ends its solve."""
+    return (err <= bound and k + 1 >= min_iterations) or k + 1 >= max_iterations
+
+
+def chebyshev_weights(rho: float, count: int) -> np.ndarray:
+    """omega_k for sweeps k = 0 .. count - 1 (CHEBYSHEV_RHO's recurrence; 1 before
+    CHEBYSHEV_FROM), as float32: the host's loop and the device's sweeps apply the same."""
+    out = np.ones(count, np.float64)
+    for k in range(CHEBYSHEV_FROM, count):
+        out[k] = 2.0 / (2.0 - rho * rho) if k == CHEBYSHEV_FROM else 4.0 / (4.0 - rho * rho * out[k - 1])
+    return out.astype(np.float32)
 
 
 @ti.kernel
 def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, number_density: F1, density: F1,
                   near: I1, near_count: I1, gfac: F1, lay: ivec2, rows: ti.template(), img: I1, img_g: V3,
                   img_span: IV2, prm: F1, ftab: F2, stats: F1, dt_guess: ti.f32, normal: V3, viscous: V3,
-                  wall_visc: F1, wall_grad: V3, warm_kappa: F1, warm_push: V3, kern: ti.template(),
-                  tension: ti.template(), terms: ti.template()):
+                  wall_visc: F1, wall_grad: V3, warm_kappa: F1, warm_push: V3, ctype: I1, cprm: F2, sdf: F1,
+                  kern: ti.template(), tension: ti.template(), terms: ti.template()):
     """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
     raised to the largest |v + a dt_guess| of particles with a neighbour (the CFL speed), stats[1]
     to that of particles with none (stable_dt). Morris's term goes to `viscous`,
@@ -555,6 +624,7 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
         push = ki * wall_grad[i]
         base = i * lay.x
         step = list_step(lay, rows)
+        close = 0.0
         for m in range(near_count[i]):
             j = near[base + m * step]
             rv = xi - position[j]
@@ -562,6 +632,7 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
             r = ti.sqrt(r2)
             dj = number_density[j]
             fj = fluid[j]
+            close = ti.max(close, (velocity[j] - vi).dot(rv) / r)
             push += (ki + warm_kappa[j]) * gfac[base + m * step] * rv
             if ti.static(terms & MU_TERM):
                 mu = 0.5 * (ftab[fi, F_MU] + ftab[fj, F_MU])
@@ -586,19 +657,38 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
         warm_push[i] = image_terms(push, i, img, img_g, img_span, warm_kappa, ki, False)
         viscous[i] = (a_eta / di - wall_visc[i] * vi) / ftab[fi, F_MASS]
         raise_max(stats, ti.select(near_count[i] > 0, 0, 1), (vi + dt_guess * a).norm())
+        if near_count[i] > 0:
+            # the closing speed (stable_dt): of i and its neighbours, and of i and its images in
+            # the walls and colliders within h (2 w_n towards them), with what this step's
+            # accelerations other than gravity, which all share, could add
+            w = vi + dt_guess * a
+            box = box_of(prm)
+            _a, side = nearest_walls(xi, box.lo, box.hi, h)
+            for ax in ti.static(range(3)):
+                close = ti.max(close, -2.0 * side[ax] * w[ax])
+            for k in range(ctype.shape[0]):
+                phi, nk = collider_sdf(ctype[k], cprm, sdf, k, xi)
+                if phi < h:
+                    close = ti.max(close, -2.0 * w.dot(nk))
+            raise_max(stats, 2, close + dt_guess * (a - c.gravity).norm())
 
 
 @ti.kernel
 def k_lone_rate(position: V3, velocity: V3, acceleration: V3, near_count: I1, start: I1, count: I1, origin: vec3,
                 inv_cell: ti.f32, dims: ivec3, reach: ti.i32, prm: F1, ctype: I1, cprm: F2, sdf: F1, r: ti.f32,
-                cfl: ti.f32, dt_guess: ti.f32, others: ti.f32, out: F1):
+                cfl: ti.f32, dt_guess: ti.f32, others: ti.f32, fast: ti.f32, out: F1):
     """out[0] raised to 1 / dt for the longest step each particle with no neighbour (spray in
     flight) may take, its velocity w_i = v_i + a_i dt_guess: coming no nearer than 2r to another
     particle, and moving towards a wall no farther than it is from it (at least h - 2r: the box
     keeps it in), towards a collider no farther than it is from it (at least the CFL's cfl r: a
     thin collider could be crossed). A particle j in the `reach` cells around it (all within
     R = reach / inv_cell >= 2h of it) closes on it at most |w_i - w_j| dt, one beyond R at most
-    (|w_i| + others) dt, and a wall or collider at w_i's component towards it. (stable_dt)"""
+    (|w_i| + others) dt, and a wall or collider at w_i's component towards it. (stable_dt)
+
+    A particle with neighbours and |w_i| over `fast` (the closing-speed step lets it outrun its
+    neighbourhood: stable_dt) is bounded as well: each particle now beyond h (and within R) by
+    coming no nearer than 2r, beyond R as above, and each wall and collider now beyond h by
+    coming no nearer than r (those within h are in the closing speed already)."""
     for i in position:
         if near_count[i] == 0:
             c, box = consts_of(prm), box_of(prm)
@@ -624,6 +714,37 @@ def k_lone_rate(position: V3, velocity: V3, acceleration: V3, near_count: I1, st
             for k in range(ctype.shape[0]):
                 phi, n = collider_sdf(ctype[k], cprm, sdf, k, xi)
                 rate = ti.max(rate, -wi.dot(n) / ti.max(phi, cfl * r))
+            raise_max(out, 0, rate)
+        elif (velocity[i] + dt_guess * acceleration[i]).norm() > fast:
+            # a particle with neighbours, fast enough to reach fluid beyond h in a step of the
+            # closing-speed CFL: no particle now beyond h comes within 2r of it, nor does it
+            # come within r of a wall or collider now beyond h
+            c, box = consts_of(prm), box_of(prm)
+            xi = position[i]
+            wi = velocity[i] + dt_guess * acceleration[i]
+            far = reach / inv_cell
+            rate = (wi.norm() + others) / (far - 2.0 * r)
+            ci = cell_of(xi, origin, inv_cell, dims)
+            for dz, dy in ti.ndrange((-reach, reach + 1), (-reach, reach + 1)):
+                cy, cz = ci.y + dy, ci.z + dz
+                if 0 <= cy < dims.y and 0 <= cz < dims.z:
+                    c0 = flat(ivec3(ti.max(ci.x - reach, 0), cy, cz), dims)
+                    c1 = flat(ivec3(ti.min(ci.x + reach, dims.x - 1), cy, cz), dims)
+                    for j in range(start[c0], start[c1] + count[c1]):
+                        d = (xi - position[j]).norm()
+                        if d >= c.h and d < far:
+                            wj = velocity[j] + dt_guess * acceleration[j]
+                            rate = ti.max(rate, (wi - wj).norm() / (d - 2.0 * r))
+            for ax in ti.static(range(3)):
+                lo, hi = xi[ax] - box.lo[ax], box.hi[ax] - xi[ax]
+                if lo >= c.h:
+                    rate = ti.max(rate, -wi[ax] / (lo - r))
+                if hi >= c.h:
+                    rate = ti.max(rate, wi[ax] / (hi - r))
+            for k in range(ctype.shape[0]):
+                phi, n = collider_sdf(ctype[k], cprm, sdf, k, xi)
+                if phi >= c.h:
+                    rate = ti.max(rate, -wi.dot(n) / (phi - r))
             raise_max(out, 0, rate)
 
 
@@ -733,7 +854,8 @@ class DFSPHSolver(SPHSolver):
     # launched past the end would cost a pass), and the fewer launches save host time: 107 against
     # 116 ms a step on the anchor bench's first 0.15 s (2 threads)
     FUSED = True
-    # No Verlet skin: a DFSPH step moves the fastest particle sim.cfl radii (0.4, the bench 0.8),
+    # No Verlet skin: a DFSPH step moves the fastest particle sim.cfl radii (0.4, the bench 0.8)
+    # or, in a body moving as one, farther (stable_dt),
     # as far as the WCSPH skin lets anyone move before a rebuild (0.2 h / 2 = 0.4 r), so the
     # lists were rebuilt nearly every step anyway and the skin only made every sweep longer
     # (bench/solver.py's dam break, 0.25 s: 141 ms a step without a skin, 154 with 0.2 h, 198
@@ -759,6 +881,17 @@ class DFSPHSolver(SPHSolver):
         self.alpha = ti.ndarray(ti.f32, n)
         # a solve's sweeps read these (the passes' note): positions with the sweep's kappa, velocities
         self.xk, self.v4 = ti.Vector.ndarray(4, ti.f32, shape=n), ti.Vector.ndarray(4, ti.f32, shape=n)
+        # Chebyshev's acceleration (CHEBYSHEV_RHO): each particle's last sweep change, each
+        # sweep's weight per solve
+        self.delta = ti.Vector.ndarray(4, ti.f32, shape=n if any(CHEBYSHEV_RHO.values()) else 1)
+        self._omegas_np = {k: chebyshev_weights(rho, self.max_iterations) for k, rho in CHEBYSHEV_RHO.items()}
+        self._omegas = {}
+        for k, w in self._omegas_np.items():
+            self._omegas[k] = ti.ndarray(ti.f32, w.shape[0])
+            self._omegas[k].from_numpy(w)
+        self._ones = ti.ndarray(ti.f32, self.max_iterations)
+        self._ones.fill(1.0)
+        self.dt_speed = math.inf
         self.target = ti.ndarray(ti.f32, n)      # each particle's own rest number density (SURFACE_FROM)
         self.wall_grad = ti.Vector.ndarray(3, ti.f32, shape=n)
         self.warm_push = ti.Vector.ndarray(3, ti.f32, shape=n)     # the next solve's warm start (warm_start_pass)
@@ -864,15 +997,19 @@ class DFSPHSolver(SPHSolver):
             out = self._gated_solve(solve, total, warm_scale, bound, dt, min_iterations)
             k_unpack(self.v4, self.velocity)
             return out
+        chebyshev = CHEBYSHEV_RHO[solve] > 0.0
         k_warm_start(self.position, self.velocity, self.xk, self.v4, self.fluid, total, self.warm_push, dt, warm_scale,
-                     self.ftab)
+                     self.ftab, self.delta, chebyshev)
         iterations, err = 0, math.inf
         while iterations < self.max_iterations:
             self._kappa(solve, dt)
             err = self._sum(self.residual) / (self.n * self.params.lattice_density)
-            self._apply(total, dt)
+            last = (err <= bound and iterations + 1 >= min_iterations) or iterations + 1 >= self.max_iterations
+            accelerate = chebyshev and not last and self.accelerated(dt)
+            omega = float(self._omegas_np[solve][iterations]) if accelerate else 0.0
+            self._apply(total, dt, omega, chebyshev)
             iterations += 1
-            if err <= bound and iterations >= min_iterations:
+            if last:
                 break
         k_unpack(self.v4, self.velocity)
         return iterations, err
@@ -889,7 +1026,8 @@ class DFSPHSolver(SPHSolver):
                      self.near, self.near_count, self.gfac, self.near_lay, self.rows, *self.images, self.alpha,
                      self.wall_grad, total, self.warm_push, self.residual, self._summer.partial, self._summer.groups, dt,
                      warm_scale, self.prm, self.ftab, self.sweep_ctl, bound, self.n * self.params.lattice_density,
-                     min_iterations, self.max_iterations, solve, warm_start, count)
+                     min_iterations, self.max_iterations, self.delta,
+                     self._omegas[solve] if self.accelerated(dt) else self._ones, solve, warm_start, count)
 
         sweeps(True, min_iterations)
         for _ in range(0 if self.on_cpu else self._last_sweeps[solve] - min_iterations):
@@ -916,9 +1054,14 @@ class DFSPHSolver(SPHSolver):
                             self.gfac, self.near_lay, self.rows, *self.images, self.alpha, self.wall_grad,
                             self.residual, dt, self.prm)
 
-    def _apply(self, total, dt: float) -> None:
+    def accelerated(self, dt: float) -> bool:
+        """Whether a density solve of a step dt takes Chebyshev's acceleration (CHEBYSHEV_RHO):
+        where the closing-speed CFL made the step longer than the speed CFL's (stable_dt)."""
+        return dt > self.dt_speed * (1.0 + 1e-6)
+
+    def _apply(self, total, dt: float, omega: float, chebyshev: bool) -> None:
         k_apply_kappa(self.xk, self.v4, self.fluid, self.near, self.near_count, self.gfac, self.near_lay, self.rows,
-                      *self.images, total, self.wall_grad, dt, self.ftab)
+                      *self.images, total, self.wall_grad, dt, self.ftab, self.delta, omega, chebyshev)
 
     def divergence_solve(self, dt: float) -> None:
         """Make the velocity field divergence-free where it compresses (step 2)."""
@@ -937,6 +1080,7 @@ class DFSPHSolver(SPHSolver):
         self.counters["density_iterations"] += it
         self.counters["density_error"] = max(self.counters["density_error"], err)
         self.counters["density_capped"] += it >= self.max_iterations and err > self.max_density_error
+        self.counters["density_accelerated"] += self.accelerated(dt)
 
     def nonpressure(self) -> None:
         self.stats.fill(0.0)
@@ -948,8 +1092,9 @@ class DFSPHSolver(SPHSolver):
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
                       self.density, self.near, self.near_count, self.gfac, self.near_lay, self.rows, *self.images,
                       self.prm, self.ftab, self.stats, guess, self.normal, self.viscous, self.wall_visc,
-                      self.wall_grad, self.kappa_density, self.warm_push, self.kern, mode, self.viscous_terms)
-        self.vmax, self.vmax_lone = (float(v) for v in self.read(self.stats))
+                      self.wall_grad, self.kappa_density, self.warm_push, self.ctype, self.cprm, self.sdf, self.kern,
+                      mode, self.viscous_terms)
+        self.vmax, self.vmax_lone, self.vclose = (float(v) for v in self.read(self.stats))
 
     def kick(self, dt: float) -> None:
         """v* = v + dt a (step 5), with Morris's viscosity explicit while dt is within its
@@ -986,19 +1131,38 @@ class DFSPHSolver(SPHSolver):
         self.steps += 1
 
     def stable_dt(self) -> float:
-        """CFL on the particle speed: no particle with a neighbour moves more than cfl particle
-        radii a step. The speed is taken as at least SPEED_FLOOR of the shot's expected largest
-        speed, so that a column at rest does not take steps of max_dt whatever the resolution.
+        """The longest step no particle pair closes in by more than cfl particle radii: a CFL on
+        the particles' speeds relative to each other (Galilean-invariant, no speed of sound),
+        never shorter than the CFL on their speed alone.
 
-        A particle with no neighbour (spray in flight) has no neighbourhood to keep and no
-        pressure to solve: it need only not come nearer than a particle diameter 2r to any other
-        in one step, nor pass a collider. k_lone_rate bounds that by what lies around it: each
-        particle within 2h by its distance and their relative velocity, anything farther by 2h
-        and the sum of their speeds, each wall and collider by its distance and the speed
-        towards it. (Until the forty-fourth session the bound was the worst case, nothing
-        nearer than h and everyone closing at the fastest speed: dt (v_lone + v) <= h - 2r. On
-        bench/solver.py's dam break the particles thrown up the tank's back edges at 6-8 m/s,
-        three times the water's fastest, then set the step from 0.12 to 0.20 s.)"""
+        The speed CFL (the seeds', and SPlisHSPlasH's): no particle with a neighbour moves more
+        than cfl r a step, dt = cfl r / v_max, v_max the largest |v + a dt| (k_nonpressure),
+        taken as at least SPEED_FLOOR of the shot's expected largest speed, so that a column at
+        rest does not take steps of max_dt whatever the resolution. A head-on pair then closes
+        by at most 2 cfl r.
+
+        The closing-speed CFL: dt = cfl r / v_close, v_close the largest speed at which a
+        particle and a neighbour approach each other, or a particle and its image in a wall or
+        collider within h (twice its speed towards it), with what the step's accelerations
+        besides gravity could add (k_nonpressure). Where the flow moves faster than it deforms
+        (water falling or flooding along a floor as a body) that is the longer step: on
+        bench/solver.py's dam break 167 steps to 0.5 s against 353 (bench/RESULTS.md, fiftieth
+        session). The step is the longer of the two, so no pair closes faster than the speed
+        CFL lets it.
+
+        A longer step lets a particle travel farther than its neighbourhood reaches, so the
+        particles that could meet fluid now beyond h within one step are searched (k_lone_rate):
+        any particle faster than (h - 2r) / (2 dt), for whom a particle now beyond h may come
+        within 2r, and the walls and colliders beyond h within r. A particle with no neighbour
+        (spray in flight) has no neighbourhood to keep and no pressure to solve: it need only
+        not come nearer than a particle diameter 2r to any other in one step, nor pass a
+        collider; k_lone_rate bounds that by what lies around it: each particle within 2h by
+        its distance and their relative velocity, anything farther by 2h and the sum of their
+        speeds, each wall and collider by its distance and the speed towards it. (Until the
+        forty-fourth session the bound was the worst case, nothing nearer than h and everyone
+        closing at the fastest speed: dt (v_lone + v) <= h - 2r. On bench/solver.py's dam break
+        the particles thrown up the tank's back edges at 6-8 m/s, three times the water's
+        fastest, then set the step from 0.12 to 0.20 s.)"""
         fastest = max(self.vmax, self.vmax_lone)
         if not math.isfinite(fastest):
             raise Unstable(NOT_FINITE, where=self.fastest_position())
@@ -1007,15 +1171,16 @@ class DFSPHSolver(SPHSolver):
             # example at four times its resolution once took 21,675 steps for one frame)
             raise Unstable(f"a particle's speed is {fastest:.3g} m/s, over 10 times the shot's expected "
                            f"largest speed", where=self.fastest_position())
-        r = self.params.particle_radius
-        v = max(self.vmax, self.speed_floor, 1e-9)
-        dt = self.params.cfl * r / v
-        if self.vmax_lone > 0.0:
+        r, cfl = self.params.particle_radius, self.params.cfl
+        self.dt_speed = cfl * r / max(self.vmax, self.speed_floor, 1e-9)
+        dt = cfl * r / max(min(self.vclose, self.vmax), self.speed_floor, 1e-9)
+        fast = (self.h - 2.0 * r) / (2.0 * dt)
+        if self.vmax_lone > 0.0 or self.vmax > fast:
             self.lone_rate.fill(0.0)
             k_lone_rate(self.position, self.velocity, self.acceleration, self.near_count, self.start, self.count,
                         self.origin, self.inv_cell, self.dims, self.lone_reach, self.prm, self.ctype, self.cprm,
-                        self.sdf, r, self.params.cfl, self.dt_prev or self.params.max_dt, max(v, self.vmax_lone),
-                        self.lone_rate)
+                        self.sdf, r, cfl, self.dt_prev or self.params.max_dt, max(self.vmax, self.speed_floor,
+                                                                              self.vmax_lone), fast, self.lone_rate)
             dt = min(dt, 1.0 / float(self.read(self.lone_rate, 0)))
         return min(dt, self.dt_mu, self.params.max_dt)
 
@@ -1056,6 +1221,7 @@ class DFSPHSolver(SPHSolver):
     def reset_counters(self) -> None:
         self.counters = {"steps": 0, "density_iterations": 0, "divergence_iterations": 0,
                          "density_error": 0.0, "divergence_error": 0.0, "density_capped": 0, "divergence_capped": 0,
+                         "density_accelerated": 0,
                          "viscosity_steps": 0, "viscosity_iterations": 0, "viscosity_residual": 0.0}
 
     def frame_report(self) -> dict[str, float]:
@@ -1063,7 +1229,8 @@ class DFSPHSolver(SPHSolver):
         mean errors (density: relative compression; divergence: relative rate times dt); the
         steps that solved viscosity implicitly, their mean CG iterations and largest final
         residual (relative to the first); and the steps whose solve stopped at max_iterations
-        with its error still above the bound (`*_capped_steps`)."""
+        with its error still above the bound (`*_capped_steps`), and those whose density solve
+        took Chebyshev's acceleration (`density_accelerated_steps`: accelerated)."""
         c, steps = self.counters, max(self.counters["steps"], 1)
         out = {"dfsph_steps": c["steps"], "density_iterations": c["density_iterations"] / steps,
                "divergence_iterations": c["divergence_iterations"] / steps,
@@ -1071,6 +1238,7 @@ class DFSPHSolver(SPHSolver):
                "max_density_error": self.max_density_error, "max_divergence_error": self.max_divergence_error,
                "max_iterations": self.max_iterations,
                "density_capped_steps": c["density_capped"], "divergence_capped_steps": c["divergence_capped"],
+               "density_accelerated_steps": c["density_accelerated"],
                "viscosity_steps": c["viscosity_steps"],
                "viscosity_iterations": c["viscosity_iterations"] / max(c["viscosity_steps"], 1),
                "viscosity_residual": c["viscosity_residual"]}

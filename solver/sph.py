@@ -124,7 +124,7 @@ class SPHSolver:
         self.fill = ti.ndarray(ti.i32, self.n_cells)
         self._scan_buffers: dict[int, object] = {}
         self._fused_sums = None               # k_rebuild's (see _block_sums)
-        self.stats = ti.ndarray(ti.f32, 2)    # max speed, max acceleration
+        self.stats = ti.ndarray(ti.f32, 3)    # WCSPH: max speed, acceleration; DFSPH: k_nonpressure's
         self.moved = ti.ndarray(ti.i32, 1)    # 1: a particle moved skin/2 from its reference position
         # the step's controller on the device (clock.py), and a gate that stays open
         self.ctl, self.open_gate = ti.ndarray(ti.f64, clock.SIZE), ti.ndarray(ti.f64, clock.SIZE)

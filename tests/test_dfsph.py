@@ -210,6 +210,8 @@ def test_sweeps_gated_on_the_device_match_the_hosts_loop(monkeypatch):
         for key in a:
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
     assert runs[0][0][1]["density_iterations"] > 2
+    # the column's fall takes the closing-speed step, and its density solve Chebyshev's sweeps
+    assert sum(report["density_accelerated_steps"] for _, report, _ in runs[0]) > 0, [f[1] for f in runs[0]]
 
 
 def test_a_solve_stopped_at_its_cap_is_counted_and_said(caplog):
@@ -606,6 +608,45 @@ def test_a_drop_in_flight_does_not_set_the_step_and_lands_at_a_spacing():
 
 
 
+def test_a_body_falling_as_one_takes_long_steps_and_meets_the_pool_and_the_floor_at_a_spacing():
+    """Where the flow moves faster than it deforms the step is the closing-speed CFL's
+    (DFSPHSolver.stable_dt): a 6 cm cube falling at 5 m/s as a body, its bottom 4.2 r above a
+    resting pool (cfl 0.8), takes a first step of 4.54 ms where the speed CFL gives 1.57 ms. Its
+    particles outrun their neighbourhoods, so they are searched (k_lone_rate): the cube comes
+    within h of the pool no nearer than 2r (measured 2.05 r; without the search the step was
+    max_dt's 8.33 ms and it came to 0.79 r of the pool in one step), and, over a bare floor, no
+    nearer than r to it (measured 1.21 r; without the search the first step put it on the
+    walls' clamp, 0.5 r)."""
+    from scipy.spatial import cKDTree
+
+    from pipeline.stages.sim import initial_state, make_solver, solver_params
+
+    for pool in (True, False):
+        job = tiny_spec(((0.07, 0.2, 0.07), (0.13, 0.26, 0.13)), ((0, 0, 0), (0.2, 0.4, 0.2)), sim={"cfl": 0.8})
+        if pool:
+            job["fluids"][0]["blocks"] += ({"min": (0.0, 0.0, 0.0), "max": (0.2, 0.06, 0.2)},)
+        spec = ShotSpec.model_validate(job)
+        params = solver_params(spec)
+        state = initial_state(spec, params)
+        r, h = params.particle_radius, params.h
+        x, v = state["position"], state["velocity"]
+        cube = x[:, 1] > 0.15
+        below = x[~cube, 1].max() if pool else 0.0
+        x[cube, 1] += below + 4.2 * r - x[cube, 1].min()
+        v[cube] = (0.0, -5.0, 0.0)
+        s = make_solver(spec, params, state)
+        dt = s.step(0.03)
+        assert dt > 2.0 * s.dt_speed, (dt, s.dt_speed)
+        p = s.position.to_numpy()
+        in_cube = np.isin(s.id.to_numpy(), state["id"][cube])
+        if pool:
+            nearest = cKDTree(p[~in_cube]).query(p[in_cube])[0].min()
+            assert nearest >= 2 * r * (1 - 1e-3), f"the cube came to {nearest / r:.3f} r of the pool in one step"
+        else:
+            lowest = p[:, 1].min()
+            assert lowest >= r * (1 - 1e-3), f"the cube came to {lowest / r:.3f} r of the floor in one step"
+
+
 def test_spray_does_not_step_through_a_thin_collider():
     """The lone particles' step (k_lone_rate) moves a particle towards a collider no farther
     than it is from it (at least cfl r a step): drops falling free at 5 and 7 m/s onto a plate
@@ -721,7 +762,7 @@ def test_the_factor_is_a_sweeps_exact_diagonal_where_the_neighbourhood_is_sparse
         s.xk.from_numpy(np.c_[x, unit].astype(np.float32))       # the sweeps' positions with kappa
         s.v4.from_numpy(np.zeros((s.n, 4), np.float32))
         k_apply_kappa(s.xk, s.v4, s.fluid, s.near, s.near_count, s.gfac, s.near_lay, s.rows, *s.images,
-                      scratch, s.wall_grad, dt, s.ftab)
+                      scratch, s.wall_grad, dt, s.ftab, s.delta, 0.0, False)
         answer = -rate(i, s.v4.to_numpy()[:, :3].astype(np.float64)) / dt
         assert abs(answer * alpha[i] - 1.0) < 1e-3, \
             f"particle {i} ({nc[i]} neighbours, {span[i, 1]} images): 1 / alpha {1 / alpha[i]:.4g}, answer {answer:.4g}"
