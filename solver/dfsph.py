@@ -69,7 +69,7 @@ from . import kernels as K
 from .boundaries import (boundary_sums, collider_sdf, mirror_walls, nearest_walls, reflect, reflect_velocity,
                          wall_viscosity)
 from .errors import Unstable
-from .neighbours import cell_of, flat, k_gather_f1, list_step
+from .neighbours import cell_of, flat, k_gather_f1, k_gather_v3, list_step
 from .params import F_ETA, F_INV_MASS, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, NO_SLIP_ROWS, SolverParams
 from .sph import NOT_FINITE, SPHSolver
 from .stability import explicit_viscous_limit
@@ -856,9 +856,12 @@ class DFSPHSolver(SPHSolver):
     Extra state (kept sorted with the particles, saved in checkpoints for bit-exact resume):
       kappa_density     (N,) the last density solve's kappa times dt^2 (warm start)
       kappa_divergence  (N,) the last divergence solve's kappa times dt (warm start)
+      viscous_dv        (N, 3) the last implicit viscosity solve's correction v - v* (its warm
+                        start)
     Per-step counters for the frame report: iterations of both solves and their final errors.
     """
     EXTRA = ("kappa_density", "kappa_divergence")
+    EXTRA_VECTORS = ("viscous_dv",)
     LISTS_CHECKED_AT_ONCE = True      # DFSPH decides on the host
     # A list rebuild and a solve's sweep one launch each on every backend (k_rebuild, k_sweeps):
     # on a GPU the host reads once for several sweeps; on the CPU it reads every sweep (a sweep
@@ -942,15 +945,20 @@ class DFSPHSolver(SPHSolver):
             a.from_numpy(np.asarray(state.get(name, np.zeros(n)), np.float32))
             setattr(self, name, a)
             setattr(self, name + "_b", b)
+        for name in self.EXTRA_VECTORS:
+            a, b = ti.Vector.ndarray(3, ti.f32, shape=n), ti.Vector.ndarray(3, ti.f32, shape=n)
+            a.from_numpy(np.asarray(state.get(name, np.zeros((n, 3))), np.float32).reshape(n, 3))
+            setattr(self, name, a)
+            setattr(self, name + "_b", b)
         self.kern = params.density_kind
         self.reset_counters()
 
     # ----------------------------------------------------------------------------- phases
     def build_lists(self, from_position: bool = False) -> None:
         super().build_lists(from_position)     # sorts the particles: the warm-start arrays follow them
-        for name in self.EXTRA:
+        for name in self.EXTRA + self.EXTRA_VECTORS:
             a, b = getattr(self, name), getattr(self, name + "_b")
-            k_gather_f1(self.order, a, b)
+            (k_gather_v3 if name in self.EXTRA_VECTORS else k_gather_f1)(self.order, a, b)
             setattr(self, name, b)
             setattr(self, name + "_b", a)
 
@@ -1122,7 +1130,7 @@ class DFSPHSolver(SPHSolver):
             self.implicit = ImplicitViscosity(self.n)
         it, res = self.implicit.solve(self.position, self.velocity, self.fluid, self.number_density, self.near,
                                       self.near_count, self.gfac, self.near_lay, self.rows, self.ftab, self.wall_visc,
-                                      dt, self.h)
+                                      dt, self.h, self.viscous_dv)
         self.counters["viscosity_steps"] += 1
         self.counters["viscosity_iterations"] += it
         self.counters["viscosity_residual"] = max(self.counters["viscosity_residual"], res)
@@ -1268,6 +1276,6 @@ class DFSPHSolver(SPHSolver):
 
     def state(self) -> dict[str, np.ndarray]:
         out = super().state()
-        for name in self.EXTRA:
+        for name in self.EXTRA + self.EXTRA_VECTORS:
             out[name] = getattr(self, name).to_numpy()
         return out

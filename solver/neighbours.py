@@ -378,3 +378,10 @@ def k_gather_f1(order: I1, src: F1, dst: F1):
     """dst[s] = src[order[s]]: a per-particle float array follows the sort."""
     for s in order:
         dst[s] = src[order[s]]
+
+
+@ti.kernel
+def k_gather_v3(order: I1, src: V3, dst: V3):
+    """dst[s] = src[order[s]]: a per-particle vector array follows the sort."""
+    for s in order:
+        dst[s] = src[order[s]]

@@ -20,6 +20,13 @@ definite: CG converges, here with A's diagonal m_i + dt sum_j w_ij as the precon
 velocity components share A and are solved together, as one system of 3N unknowns. The solve
 starts from v* and stops when the residual is under `tolerance` of the first one (which is dt L v*,
 the explicit step's viscous impulse), so a fluid as thin as water still gets its viscosity.
+
+Warm start (as SPlisHSPlasH's Viscosity_Weiler2018 does): the solve starts from v* + dv, where dv
+is the correction the last implicit step made (v - v*, kept sorted with the particles and in
+checkpoints by the solver), and stops on the same bound as from v*, a fraction `tolerance` of the
+residual v* alone would start from: the warm start changes where the iteration begins, not how
+close it must come. Where dv is a worse start than v* (the flow turned), the solve starts from
+v*.
 Sums over particles are solver.sums's, the same on every run and backend.
 """
 import math
@@ -42,15 +49,16 @@ def weight(eta: ti.f32, di: ti.f32, dj: ti.f32, f: ti.f32, r2: ti.f32, h: ti.f32
 @ti.kernel
 def k_first_residual(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1, near_count: I1,
                      gfac: F1, lay: ivec2, rows: ti.template(), ftab: F2, wall: F1, dt: ti.f32, h: ti.f32, diag: F1,
-                     res: V3, direction: V3, rr: F1, rz: F1, wpair: F1):
-    """From x0 = v*: r = M v* - A v* = -dt L v*, the diagonal of A, the first direction z = r / diag,
-    and per particle r.r and r.z; each pair's w_ij kept beside its list entry (`wpair`, laid out
-    as gfac), for the iterations' products."""
+                     res: V3, direction: V3, rr: F1, rz: F1, wpair: F1, dv: V3, rr_cold: F1, rz_cold: F1):
+    """The residuals of both starts: from x0 = v*, r0 = M v* - A v* = -dt L v*, in `direction`
+    (r0.r0 and r0.z0 per particle in rr_cold, rz_cold); from x0 = v* + dv, r = r0 - A dv, in
+    `res` (r.r and r.z in rr, rz); the diagonal of A (z = r / diag); each pair's w_ij kept beside
+    its list entry (`wpair`, laid out as gfac), for the iterations' products."""
     for i in position:
-        xi, vi = position[i], velocity[i]
+        xi, vi, dvi = position[i], velocity[i], dv[i]
         fi, di = fluid[i], number_density[i]
         wsum = wall[i]              # the walls: neighbours at rest
-        lv = wsum * vi
+        lv, ldv = wsum * vi, wsum * dvi
         base = i * lay.x
         step = list_step(lay, rows)
         for m in range(near_count[i]):
@@ -60,13 +68,30 @@ def k_first_residual(position: V3, velocity: V3, fluid: I1, number_density: F1, 
             wpair[base + m * step] = w
             wsum += w
             lv += w * (vi - velocity[j])
+            ldv += w * (dvi - dv[j])
         d = ftab[fi, F_MASS] + dt * wsum
-        r = -dt * lv
+        r0 = -dt * lv
+        r = r0 - (ftab[fi, F_MASS] * dvi + dt * ldv)
         diag[i] = d
         res[i] = r
-        direction[i] = r / d
+        direction[i] = r0
         rr[i] = r.dot(r)
         rz[i] = r.dot(r) / d
+        rr_cold[i] = r0.dot(r0)
+        rz_cold[i] = r0.dot(r0) / d
+
+
+@ti.kernel
+def k_start(velocity: V3, dv: V3, res: V3, direction: V3, diag: F1, warm: ti.i32):
+    """The first direction z = r / diag from the start taken: from v* + dv (`warm`: velocity
+    += dv), or from v* (res = r0, dv = 0)."""
+    for i in velocity:
+        if warm:
+            velocity[i] += dv[i]
+        else:
+            res[i] = direction[i]
+            dv[i] = ti.Vector([0.0, 0.0, 0.0])
+        direction[i] = res[i] / diag[i]
 
 
 @ti.kernel
@@ -89,10 +114,12 @@ def k_product(fluid: I1, near: I1, near_count: I1, wpair: F1, lay: ivec2, rows: 
 
 
 @ti.kernel
-def k_move(velocity: V3, res: V3, p: V3, ap: V3, diag: F1, alpha: ti.f32, rr: F1, rz: F1):
-    """x += alpha p, r -= alpha A p; per particle r.r and r.z (z = r / diag)."""
+def k_move(velocity: V3, dv: V3, res: V3, p: V3, ap: V3, diag: F1, alpha: ti.f32, rr: F1, rz: F1):
+    """x += alpha p (and the correction dv = x - v* with it), r -= alpha A p; per particle r.r
+    and r.z (z = r / diag)."""
     for i in velocity:
         velocity[i] += alpha * p[i]
+        dv[i] += alpha * p[i]
         r = res[i] - alpha * ap[i]
         res[i] = r
         rr[i] = r.dot(r)
@@ -109,32 +136,42 @@ def k_turn(res: V3, p: V3, diag: F1, beta: ti.f32):
 class ImplicitViscosity:
     """The scratch arrays and the CG loop for a solver's n particles."""
 
-    def __init__(self, n: int, tolerance: float = 1e-3, max_iterations: int = 100):
+    def __init__(self, n: int, tolerance: float = 1e-3, max_iterations: int = 100, warm_start: bool = True):
         self.tolerance, self.max_iterations = float(tolerance), int(max_iterations)
-        self.diag, self.rr, self.rz = (ti.ndarray(ti.f32, n) for _ in range(3))
+        self.warm_start = bool(warm_start)      # False: every solve from v* (the tests' reference)
+        self.diag, self.rr, self.rz, self.rr_cold, self.rz_cold = (ti.ndarray(ti.f32, n) for _ in range(5))
         self.res, self.p, self.ap = (ti.Vector.ndarray(3, ti.f32, shape=n) for _ in range(3))
         self.wpair = None           # w_ij beside each list entry, as large as the lists' gfac
         summer = Summer(n)
         self._sum, self._sums = summer.total, summer.totals
+        self.warm_starts = 0        # the solves that started from v* + dv
 
     def solve(self, position, velocity, fluid, number_density, near, near_count, gfac, lay, rows, ftab, wall, dt: float,
-              h: float) -> tuple[int, float]:
-        """Replace `velocity` (v*) by the solution of A v = M v*. Returns (iterations, the final
-        residual relative to the first)."""
+              h: float, dv) -> tuple[int, float]:
+        """Replace `velocity` (v*) by the solution of A v = M v*, from v* + dv where that is the
+        closer start, and leave the correction v - v* in `dv` (the next solve's start). Returns
+        (iterations, the final residual relative to v*'s)."""
         if self.wpair is None or self.wpair.shape[0] != gfac.shape[0]:     # (the lists grew)
             self.wpair = ti.ndarray(ti.f32, gfac.shape[0])
         k_first_residual(position, velocity, fluid, number_density, near, near_count, gfac, lay, rows, ftab, wall,
-                         dt, h, self.diag, self.res, self.p, self.rr, self.rz, self.wpair)
-        rr0, rz = self._sums(self.rr, self.rz)
+                         dt, h, self.diag, self.res, self.p, self.rr, self.rz, self.wpair, dv, self.rr_cold,
+                         self.rz_cold)
+        (rr, rz), (rr0, rz0) = self._sums(self.rr, self.rz), self._sums(self.rr_cold, self.rz_cold)
         if rr0 <= 0.0:
+            dv.fill(0.0)
             return 0, 0.0
-        rr, iterations = rr0, 0
+        warm = self.warm_start and rr < rr0
+        if not warm:
+            rr, rz = rr0, rz0
+        self.warm_starts += int(warm)
+        k_start(velocity, dv, self.res, self.p, self.diag, int(warm))
+        iterations = 0
         while iterations < self.max_iterations and rr > self.tolerance ** 2 * rr0:
             k_product(fluid, near, near_count, self.wpair, lay, rows, ftab, wall, dt, self.p, self.ap, self.rr)
             pap = self._sum(self.rr)
             if not pap > 0.0:       # round-off at convergence, or a broken matrix: stop where we are
                 break
-            k_move(velocity, self.res, self.p, self.ap, self.diag, rz / pap, self.rr, self.rz)
+            k_move(velocity, dv, self.res, self.p, self.ap, self.diag, rz / pap, self.rr, self.rz)
             rr, rz_next = self._sums(self.rr, self.rz)
             iterations += 1
             k_turn(self.res, self.p, self.diag, rz_next / rz if rz > 0 else 0.0)
