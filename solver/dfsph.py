@@ -673,11 +673,16 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
             raise_max(stats, 2, close + dt_guess * (a - c.gravity).norm())
 
 
+# k_lone_rate's culls take the step already found as known, less this margin (far above f32
+# round-off), so that a rate it left out could not have shortened the step
+KNOWN_RATE_MARGIN = 0.999
+
+
 @ti.kernel
 def k_lone_rate(position: V3, velocity: V3, acceleration: V3, near_count: I1, start: I1, count: I1, origin: vec3,
                 inv_cell: ti.f32, dims: ivec3, reach: ti.i32, prm: F1, ctype: I1, cprm: F2, sdf: F1, r: ti.f32,
-                cfl: ti.f32, dt_guess: ti.f32, others: ti.f32, fast: ti.f32, cull: ti.i32, lo_x: V3, hi_x: V3,
-                lo_w: V3, hi_w: V3, out: F1):
+                cfl: ti.f32, dt_guess: ti.f32, others: ti.f32, fast: ti.f32, cull: ti.i32, known: ti.f32,
+                lo_x: V3, hi_x: V3, lo_w: V3, hi_w: V3, out: F1):
     """out[0] raised to 1 / dt for the longest step each particle with no neighbour (spray in
     flight) may take, its velocity w_i = v_i + a_i dt_guess: coming no nearer than 2r to another
     particle, and moving towards a wall no farther than it is from it (at least h - 2r: the box
@@ -693,7 +698,9 @@ def k_lone_rate(position: V3, velocity: V3, acceleration: V3, near_count: I1, st
     cell is walked only where the boxes its particles' positions and velocities span (lo_x,
     hi_x, lo_w, hi_w: k_cell_bounds) allow one of them a higher rate than found so far: the same
     maximum from fewer candidates (on bench/solver.py's dam break, stable_dt's time to 0.5 s fell
-    from 4.4 to 2.0 s)."""
+    from 4.4 to 2.0 s). `known`: a rate the step is bounded by already (under 1 / dt by a margin
+    far above round-off); a cell that can raise no rate above it is not walked either, for the
+    caller takes the step min(dt, 1 / out[0]), which rates under `known` do not change."""
     for i in position:
         lone = near_count[i] == 0
         wi = velocity[i] + dt_guess * acceleration[i]
@@ -714,7 +721,7 @@ def k_lone_rate(position: V3, velocity: V3, acceleration: V3, near_count: I1, st
                         most = ti.max(ti.abs(wi - lo_w[k]), ti.abs(hi_w[k] - wi)).norm()
                         # (with a margin far above round-off: a cell walked needlessly costs time,
                         # one skipped wrongly another maximum)
-                        walk = 1.001 * most > rate * ti.max(0.999 * gap - 2.0 * r, cfl * r)
+                        walk = 1.001 * most > ti.max(rate, known) * ti.max(0.999 * gap - 2.0 * r, cfl * r)
                     if walk:
                         for j in range(start[k], start[k] + count[k]):
                             d = (xi - position[j]).norm()
@@ -1196,7 +1203,10 @@ class DFSPHSolver(SPHSolver):
                            f"largest speed", where=self.fastest_position())
         r, cfl = self.params.particle_radius, self.params.cfl
         self.dt_speed = cfl * r / max(self.vmax, self.speed_floor, 1e-9)
-        dt = cfl * r / max(min(self.vclose, self.vmax), self.speed_floor, 1e-9)
+        # the step before the search, so that it looks only for who could outrun the step taken
+        # (on the bench, max_dt caps it from 0.22 s: 10-22k particles faster than the closing
+        # step's threshold, a third as many faster than the step's)
+        dt = min(cfl * r / max(min(self.vclose, self.vmax), self.speed_floor, 1e-9), self.dt_mu, self.params.max_dt)
         fast = (self.h - 2.0 * r) / (2.0 * dt)
         if self.vmax_lone > 0.0 or self.vmax > fast:
             guess = self.dt_prev or self.params.max_dt
@@ -1209,9 +1219,10 @@ class DFSPHSolver(SPHSolver):
             k_lone_rate(self.position, self.velocity, self.acceleration, self.near_count, self.start, self.count,
                         self.origin, self.inv_cell, self.dims, self.lone_reach, self.prm, self.ctype, self.cprm,
                         self.sdf, r, cfl, guess, max(self.vmax, self.speed_floor, self.vmax_lone), fast,
-                        int(self.vmax > fast), *(self.cell_bounds or self._no_bounds), self.lone_rate)
+                        int(self.vmax > fast), KNOWN_RATE_MARGIN / dt, *(self.cell_bounds or self._no_bounds),
+                        self.lone_rate)
             dt = min(dt, 1.0 / float(self.read(self.lone_rate, 0)))
-        return min(dt, self.dt_mu, self.params.max_dt)
+        return dt
 
     def drift(self, dt: float) -> None:
         k_drift(self.position, self.velocity, dt)
