@@ -586,7 +586,7 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
                   near: I1, near_count: I1, gfac: F1, lay: ivec2, rows: ti.template(), img: I1, img_g: V3,
                   img_span: IV2, prm: F1, ftab: F2, stats: F1, dt_guess: ti.f32, normal: V3, viscous: V3,
                   wall_visc: F1, wall_grad: V3, warm_kappa: F1, warm_push: V3, ctype: I1, cprm: F2, sdf: F1,
-                  kern: ti.template(), tension: ti.template(), terms: ti.template()):
+                  wpair: F1, kern: ti.template(), tension: ti.template(), terms: ti.template()):
     """Gravity, viscosity, XSPH smoothing and the color-field surface tension; stats[0] is
     raised to the largest |v + a dt_guess| of particles with a neighbour (the CFL speed), stats[1]
     to that of particles with none (stable_dt). Morris's term goes to `viscous`,
@@ -607,7 +607,9 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
     `terms`: the viscosity terms any fluid of the shot has (MU_TERM, ETA_TERM, XSPH_TERM); the
     others are zero for every pair and are not summed. warm_push[i]: as k_density_factor's, of
     warm_kappa = the density solve's last total, for that solve's warm start: nothing moves the
-    particles between this pass and the solve."""
+    particles between this pass and the solve. With Morris's term, each pair's weight w_ij
+    (solver.viscosity's) is kept beside its list entry (`wpair`, laid out as gfac) for the
+    implicit solve, if the step is beyond its explicit limit."""
     h = prm[P_H]
     for i in position:
         c = consts_of(prm)
@@ -639,7 +641,9 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
                 a_v += mu * (velocity[j] - vi) / (di * dj) * K.lap_viscosity(r, h)
             if ti.static(terms & ETA_TERM):
                 # with the pair's dW/dr / r from the density pass
-                a_eta += morris(ftab[fi, F_ETA] + ftab[fj, F_ETA], dj, gfac[base + m * step], r2, h, vi - velocity[j])
+                q = morris(ftab[fi, F_ETA] + ftab[fj, F_ETA], dj, gfac[base + m * step], r2, h, 1.0)
+                a_eta += q * (vi - velocity[j])
+                wpair[base + m * step] = -q / di
             if ti.static(terms & XSPH_TERM):
                 smooth += (velocity[j] - vi) * K.w(kern, r, h) / dj
             if ti.static(tension == MUELLER):
@@ -1001,6 +1005,10 @@ class DFSPHSolver(SPHSolver):
     def _grow_neighbours(self, cap: int) -> None:
         super()._grow_neighbours(cap)
         self.gfac = ti.ndarray(ti.f32, max(self.n * self.nb_cap, 1))     # dW/dr / r beside each `near` entry
+        # Morris's pair weights beside them (k_nonpressure, for the implicit viscosity), where a
+        # fluid has a dynamic viscosity
+        eta = bool(np.any(self.params.fluid_table[:, F_ETA] != 0))
+        self.wpair = ti.ndarray(ti.f32, max(self.n * self.nb_cap, 1) if eta else 1)
         # `near` (and gfac) in rows of near_lay (SPHSolver.build_lists): on the CPU a copy of its
         # own, on a GPU the interleaved Verlet lists themselves where there is no skin (they hold
         # only pairs within h: the density pass filters them in place, entry k <= m written after
@@ -1151,8 +1159,8 @@ class DFSPHSolver(SPHSolver):
         k_nonpressure(self.position, self.velocity, self.acceleration, self.fluid, self.number_density,
                       self.density, self.near, self.near_count, self.gfac, self.near_lay, self.rows, *self.images,
                       self.prm, self.ftab, self.stats, guess, self.normal, self.viscous, self.wall_visc,
-                      self.wall_grad, self.kappa_density, self.warm_push, self.ctype, self.cprm, self.sdf, self.kern,
-                      mode, self.viscous_terms)
+                      self.wall_grad, self.kappa_density, self.warm_push, self.ctype, self.cprm, self.sdf, self.wpair,
+                      self.kern, mode, self.viscous_terms)
         self.vmax, self.vmax_lone, self.vclose = (float(v) for v in self.read(self.stats))
 
     def kick(self, dt: float) -> None:
@@ -1164,9 +1172,8 @@ class DFSPHSolver(SPHSolver):
         k_kick(self.velocity, self.acceleration, dt)
         if self.implicit is None:
             self.implicit = ImplicitViscosity(self.n)
-        it, res = self.implicit.solve(self.position, self.velocity, self.fluid, self.number_density, self.near,
-                                      self.near_count, self.gfac, self.near_lay, self.rows, self.ftab, self.wall_visc,
-                                      dt, self.h, self.viscous_dv)
+        it, res = self.implicit.solve(self.velocity, self.fluid, self.near, self.near_count, self.wpair,
+                                      self.near_lay, self.rows, self.ftab, self.wall_visc, dt, self.viscous_dv)
         self.counters["viscosity_steps"] += 1
         self.counters["viscosity_iterations"] += it
         self.counters["viscosity_residual"] = max(self.counters["viscosity_residual"], res)

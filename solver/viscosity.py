@@ -34,44 +34,36 @@ import math
 import taichi as ti
 
 from .neighbours import list_step
-from .params import F_ETA, F_MASS
+from .params import F_MASS
 from .sums import Summer
 from .types import F1, F2, I1, V3, ivec2
 
 
-@ti.func
-def weight(eta: ti.f32, di: ti.f32, dj: ti.f32, f: ti.f32, r2: ti.f32, h: ti.f32) -> ti.f32:
-    """w_ij of the module docstring (eta = eta_i + eta_j), with x_ij . grad W_ij = f r^2 where
-    f = dW/dr / r is the pair's factor from the density pass (dfsph.k_density_factor)."""
-    return -eta * f * r2 / ((r2 + 0.01 * h * h) * di * dj)
-
-
 @ti.kernel
-def k_first_residual(position: V3, velocity: V3, fluid: I1, number_density: F1, near: I1, near_count: I1,
-                     gfac: F1, lay: ivec2, rows: ti.template(), ftab: F2, wall: F1, dt: ti.f32, h: ti.f32, diag: F1,
-                     res: V3, direction: V3, rr: F1, rz: F1, wpair: F1, dv: V3, rr_cold: F1, rz_cold: F1):
+def k_first_residual(velocity: V3, fluid: I1, near: I1, near_count: I1, wpair: F1, lay: ivec2, rows: ti.template(),
+                     ftab: F2, wall: F1, dt: ti.f32, diag: F1, res: V3, direction: V3, rr: F1, rz: F1, dv: V3,
+                     rr_cold: F1, rz_cold: F1):
     """The residuals of both starts: from x0 = v*, r0 = M v* - A v* = -dt L v*, in `direction`
     (r0.r0 and r0.z0 per particle in rr_cold, rz_cold); from x0 = v* + dv, r = r0 - A dv, in
-    `res` (r.r and r.z in rr, rz); the diagonal of A (z = r / diag); each pair's w_ij kept beside
-    its list entry (`wpair`, laid out as gfac), for the iterations' products."""
-    for i in position:
-        xi, vi, dvi = position[i], velocity[i], dv[i]
-        fi, di = fluid[i], number_density[i]
+    `res` (r.r and r.z in rr, rz); and the diagonal of A (z = r / diag). The pairs' w_ij come
+    beside the list entries (`wpair`, laid out as the lists: dfsph.k_nonpressure sums the
+    explicit term from the same weights)."""
+    for i in velocity:
+        vi, dvi = velocity[i], dv[i]
         wsum = wall[i]              # the walls: neighbours at rest
         lv, ldv = wsum * vi, wsum * dvi
         base = i * lay.x
         step = list_step(lay, rows)
         for m in range(near_count[i]):
             j = near[base + m * step]
-            w = weight(ftab[fi, F_ETA] + ftab[fluid[j], F_ETA], di, number_density[j], gfac[base + m * step],
-                       (xi - position[j]).norm_sqr(), h)
-            wpair[base + m * step] = w
+            w = wpair[base + m * step]
             wsum += w
             lv += w * (vi - velocity[j])
             ldv += w * (dvi - dv[j])
-        d = ftab[fi, F_MASS] + dt * wsum
+        mass = ftab[fluid[i], F_MASS]
+        d = mass + dt * wsum
         r0 = -dt * lv
-        r = r0 - (ftab[fi, F_MASS] * dvi + dt * ldv)
+        r = r0 - (mass * dvi + dt * ldv)
         diag[i] = d
         res[i] = r
         direction[i] = r0
@@ -97,7 +89,7 @@ def k_start(velocity: V3, dv: V3, res: V3, direction: V3, diag: F1, warm: ti.i32
 @ti.kernel
 def k_product(fluid: I1, near: I1, near_count: I1, wpair: F1, lay: ivec2, rows: ti.template(), ftab: F2, wall: F1,
               dt: ti.f32, p: V3, ap: V3, pap: F1):
-    """ap = A p and per particle p . A p, with the pairs' w_ij as k_first_residual kept them (the
+    """ap = A p and per particle p . A p, with the pairs' w_ij beside the list entries (the
     positions and densities do not change during the solve; recomputed, each took a division and
     three gathers a pair, every iteration)."""
     for i in p:
@@ -141,21 +133,17 @@ class ImplicitViscosity:
         self.warm_start = bool(warm_start)      # False: every solve from v* (the tests' reference)
         self.diag, self.rr, self.rz, self.rr_cold, self.rz_cold = (ti.ndarray(ti.f32, n) for _ in range(5))
         self.res, self.p, self.ap = (ti.Vector.ndarray(3, ti.f32, shape=n) for _ in range(3))
-        self.wpair = None           # w_ij beside each list entry, as large as the lists' gfac
         summer = Summer(n)
         self._sum, self._sums = summer.total, summer.totals
         self.warm_starts = 0        # the solves that started from v* + dv
 
-    def solve(self, position, velocity, fluid, number_density, near, near_count, gfac, lay, rows, ftab, wall, dt: float,
-              h: float, dv) -> tuple[int, float]:
+    def solve(self, velocity, fluid, near, near_count, wpair, lay, rows, ftab, wall, dt: float, dv) -> tuple[int, float]:
         """Replace `velocity` (v*) by the solution of A v = M v*, from v* + dv where that is the
-        closer start, and leave the correction v - v* in `dv` (the next solve's start). Returns
-        (iterations, the final residual relative to v*'s)."""
-        if self.wpair is None or self.wpair.shape[0] != gfac.shape[0]:     # (the lists grew)
-            self.wpair = ti.ndarray(ti.f32, gfac.shape[0])
-        k_first_residual(position, velocity, fluid, number_density, near, near_count, gfac, lay, rows, ftab, wall,
-                         dt, h, self.diag, self.res, self.p, self.rr, self.rz, self.wpair, dv, self.rr_cold,
-                         self.rz_cold)
+        closer start, and leave the correction v - v* in `dv` (the next solve's start); w_ij
+        beside the list entries in `wpair`. Returns (iterations, the final residual relative
+        to v*'s)."""
+        k_first_residual(velocity, fluid, near, near_count, wpair, lay, rows, ftab, wall, dt, self.diag, self.res,
+                         self.p, self.rr, self.rz, dv, self.rr_cold, self.rz_cold)
         (rr, rz), (rr0, rz0) = self._sums(self.rr, self.rz), self._sums(self.rr_cold, self.rz_cold)
         if rr0 <= 0.0:
             dv.fill(0.0)
@@ -167,7 +155,7 @@ class ImplicitViscosity:
         k_start(velocity, dv, self.res, self.p, self.diag, int(warm))
         iterations = 0
         while iterations < self.max_iterations and rr > self.tolerance ** 2 * rr0:
-            k_product(fluid, near, near_count, self.wpair, lay, rows, ftab, wall, dt, self.p, self.ap, self.rr)
+            k_product(fluid, near, near_count, wpair, lay, rows, ftab, wall, dt, self.p, self.ap, self.rr)
             pap = self._sum(self.rr)
             if not pap > 0.0:       # round-off at convergence, or a broken matrix: stop where we are
                 break
