@@ -679,17 +679,21 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
 
 F32_BIG = 3.0e38     # an empty box's bounds (k_around_bounds)
 
-# k_lone_rate's culls take the step already found as known, less this margin (far above f32
+# k_far_rate's culls take the step already found as known, less this margin (far above f32
 # round-off), so that a rate it left out could not have shortened the step
 KNOWN_RATE_MARGIN = 0.999
 
 
 @ti.kernel
-def k_lone_rate(position: V3, velocity: V3, acceleration: V3, near_count: I1, start: I1, count: I1, origin: vec3,
-                inv_cell: ti.f32, dims: ivec3, reach: ti.i32, prm: F1, ctype: I1, cprm: F2, sdf: F1, r: ti.f32,
-                cfl: ti.f32, dt_guess: ti.f32, others: ti.f32, fast: ti.f32, cull: ti.i32, known: ti.f32,
-                lo_x: V3, hi_x: V3, lo_w: V3, hi_w: V3, around_lo: V3, around_hi: V3, out: F1):
-    """out[0] raised to 1 / dt for the longest step each particle with no neighbour (spray in
+def k_far_rate(position: V3, velocity: V3, acceleration: V3, near_count: I1, start: I1, count: I1, origin: vec3,
+               inv_cell: ti.f32, dims: ivec3, reach: ti.i32, prm: F1, ctype: I1, cprm: F2, sdf: F1, r: ti.f32,
+               cfl: ti.f32, dt_guess: ti.f32, others: ti.f32, fast: ti.f32, cull: ti.i32, known: ti.f32,
+               lo_x: V3, hi_x: V3, lo_w: V3, hi_w: V3, around_lo: V3, around_hi: V3, out: F1):
+    """The step's bound from what lies beyond a particle's neighbourhood (named k_lone_rate until
+    it also took fast particles with neighbours), for spray and for particles that could outrun
+    their neighbourhood in one step.
+
+    out[0] raised to 1 / dt for the longest step each particle with no neighbour (spray in
     flight) may take, its velocity w_i = v_i + a_i dt_guess: coming no nearer than 2r to another
     particle, and moving towards a wall no farther than it is from it (at least h - 2r: the box
     keeps it in), towards a collider no farther than it is from it (at least the CFL's cfl r: a
@@ -770,7 +774,7 @@ def k_lone_rate(position: V3, velocity: V3, acceleration: V3, near_count: I1, st
 def k_cell_bounds(position: V3, velocity: V3, acceleration: V3, start: I1, count: I1, dt_guess: ti.f32, lo_x: V3,
                   hi_x: V3, lo_w: V3, hi_w: V3):
     """Per cell, the boxes its particles' positions and velocities w = v + a dt_guess span (for
-    k_lone_rate; an empty cell's are left as they were, and it is never read)."""
+    k_far_rate; an empty cell's are left as they were, and it is never read)."""
     for k in start:
         if count[k] > 0:
             j0 = start[k]
@@ -929,10 +933,10 @@ class DFSPHSolver(SPHSolver):
         # the CFL speed's floor (see stable_dt); 0 without an expected speed
         self.speed_floor = SPEED_FLOOR * float(expected_speed)
         self.vmax_lone = 0.0        # the fastest particle with no neighbour (stable_dt)
-        # stable_dt's search around such particles: the cells within 2h (k_lone_rate)
-        self.lone_reach = int(math.ceil(2.0 * self.h * self.inv_cell - 1e-6))
-        self.lone_rate = ti.ndarray(ti.f32, 1)
-        # the cells' position and velocity boxes for k_lone_rate's fast particles (k_cell_bounds),
+        # stable_dt's search around such particles: the cells within 2h (k_far_rate)
+        self.far_reach = int(math.ceil(2.0 * self.h * self.inv_cell - 1e-6))
+        self.far_rate = ti.ndarray(ti.f32, 1)
+        # the cells' position and velocity boxes for k_far_rate's fast particles (k_cell_bounds),
         # made when first needed; stand-ins while there are none to search
         self.cell_bounds = None
         self._no_bounds = [ti.Vector.ndarray(3, ti.f32, shape=1) for _ in range(6)]
@@ -1217,12 +1221,12 @@ class DFSPHSolver(SPHSolver):
         CFL lets it.
 
         A longer step lets a particle travel farther than its neighbourhood reaches, so the
-        particles that could meet fluid now beyond h within one step are searched (k_lone_rate):
+        particles that could meet fluid now beyond h within one step are searched (k_far_rate):
         any particle faster than (h - 2r) / (2 dt), for whom a particle now beyond h may come
         within 2r, and the walls and colliders beyond h within r. A particle with no neighbour
         (spray in flight) has no neighbourhood to keep and no pressure to solve: it need only
         not come nearer than a particle diameter 2r to any other in one step, nor pass a
-        collider; k_lone_rate bounds that by what lies around it: each particle within 2h by
+        collider; k_far_rate bounds that by what lies around it: each particle within 2h by
         its distance and their relative velocity, anything farther by 2h and the sum of their
         speeds, each wall and collider by its distance and the speed towards it. (Until the
         forty-fourth session the bound was the worst case, nothing nearer than h and everyone
@@ -1252,16 +1256,16 @@ class DFSPHSolver(SPHSolver):
                 k_cell_bounds(self.position, self.velocity, self.acceleration, self.start, self.count, guess,
                               *self.cell_bounds[:4])
                 b = self.cell_bounds
-                k_around_bounds(self.count, self.dims, self.lone_reach, 0, b[2], b[3], b[4], b[5])
-                k_around_bounds(self.count, self.dims, self.lone_reach, 1, b[4], b[5], b[6], b[7])
-                k_around_bounds(self.count, self.dims, self.lone_reach, 2, b[6], b[7], b[4], b[5])
-            self.lone_rate.fill(0.0)
-            k_lone_rate(self.position, self.velocity, self.acceleration, self.near_count, self.start, self.count,
-                        self.origin, self.inv_cell, self.dims, self.lone_reach, self.prm, self.ctype, self.cprm,
-                        self.sdf, r, cfl, guess, max(self.vmax, self.speed_floor, self.vmax_lone), fast,
-                        int(self.vmax > fast), KNOWN_RATE_MARGIN / dt, *(self.cell_bounds or self._no_bounds)[:6],
-                        self.lone_rate)
-            dt = min(dt, 1.0 / float(self.read(self.lone_rate, 0)))
+                k_around_bounds(self.count, self.dims, self.far_reach, 0, b[2], b[3], b[4], b[5])
+                k_around_bounds(self.count, self.dims, self.far_reach, 1, b[4], b[5], b[6], b[7])
+                k_around_bounds(self.count, self.dims, self.far_reach, 2, b[6], b[7], b[4], b[5])
+            self.far_rate.fill(0.0)
+            k_far_rate(self.position, self.velocity, self.acceleration, self.near_count, self.start, self.count,
+                       self.origin, self.inv_cell, self.dims, self.far_reach, self.prm, self.ctype, self.cprm,
+                       self.sdf, r, cfl, guess, max(self.vmax, self.speed_floor, self.vmax_lone), fast,
+                       int(self.vmax > fast), KNOWN_RATE_MARGIN / dt, *(self.cell_bounds or self._no_bounds)[:6],
+                       self.far_rate)
+            dt = min(dt, 1.0 / float(self.read(self.far_rate, 0)))
         return dt
 
     def drift(self, dt: float) -> None:

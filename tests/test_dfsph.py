@@ -604,7 +604,7 @@ def test_akinci_surface_tension_pulls_a_cube_into_a_drop_and_keeps_it():
 
 def test_a_drop_in_flight_does_not_set_the_step_and_lands_at_a_spacing():
     """Spray needs no CFL of its own: one particle thrown from 20 cm above a resting 10 cm pool
-    at 6 m/s, alone in the air, steps as its clearance lets it (k_lone_rate: nothing within 2h,
+    at 6 m/s, alone in the air, steps as its clearance lets it (k_far_rate: nothing within 2h,
     so dt (|v_i| + v) <= 2h - 2r; measured 4.8-4.9 ms, where the CFL on its speed gave 0.67 ms and
     the old worst-case rule dt (v_lone + v) <= h - 2r 3.0 ms), comes within h of the pool no nearer
     than 2r (measured 3.56 r; 2.75 r on the old rule), and does not throw the pool's particles
@@ -642,7 +642,7 @@ def test_a_body_falling_as_one_takes_long_steps_and_meets_the_pool_and_the_floor
     """Where the flow moves faster than it deforms the step is the closing-speed CFL's
     (DFSPHSolver.stable_dt): a 6 cm cube falling at 5 m/s as a body, its bottom 4.2 r above a
     resting pool (cfl 0.8), takes a first step of 4.54 ms where the speed CFL gives 1.57 ms. Its
-    particles outrun their neighbourhoods, so they are searched (k_lone_rate): the cube comes
+    particles outrun their neighbourhoods, so they are searched (k_far_rate): the cube comes
     within h of the pool no nearer than 2r (measured 2.05 r; without the search the step was
     max_dt's 8.33 ms and it came to 0.79 r of the pool in one step), and, over a bare floor, no
     nearer than r to it (measured 1.21 r; without the search the first step put it on the
@@ -678,7 +678,7 @@ def test_a_body_falling_as_one_takes_long_steps_and_meets_the_pool_and_the_floor
 
 
 def test_spray_does_not_step_through_a_thin_collider():
-    """The lone particles' step (k_lone_rate) moves a particle towards a collider no farther
+    """The lone particles' step (k_far_rate) moves a particle towards a collider no farther
     than it is from it (at least cfl r a step): drops falling free at 5 and 7 m/s onto a plate
     1.5 r thick come to rest on it. Without the collider's term the longer steps took both
     through the plate to the floor; the test's drops start where that happened."""
