@@ -608,8 +608,8 @@ def k_nonpressure(position: V3, velocity: V3, acceleration: V3, fluid: I1, numbe
     others are zero for every pair and are not summed. warm_push[i]: as k_density_factor's, of
     warm_kappa = the density solve's last total, for that solve's warm start: nothing moves the
     particles between this pass and the solve. With Morris's term, each pair's weight w_ij
-    (solver.viscosity's) is kept beside its list entry (`wpair`, laid out as gfac) for the
-    implicit solve, if the step is beyond its explicit limit."""
+    (solver.viscosity's) is kept beside its list entry (`wpair`, laid out as gfac), every step:
+    the implicit solve reads them where the step turns out beyond the explicit limit."""
     h = prm[P_H]
     for i in position:
         c = consts_of(prm)

@@ -26,7 +26,8 @@ is the correction the last implicit step made (v - v*, kept sorted with the part
 checkpoints by the solver), and stops on the same bound as from v*, a fraction `tolerance` of the
 residual v* alone would start from: the warm start changes where the iteration begins, not how
 close it must come. Where dv is a worse start than v* (the flow turned), the solve starts from
-v*.
+v*. The pairs' w_ij come from dfsph.k_nonpressure, which sums the explicit term from them.
+
 Sums over particles are solver.sums's, the same on every run and backend.
 """
 import math
