@@ -937,8 +937,9 @@ class DFSPHSolver(SPHSolver):
         self.far_reach = int(math.ceil(2.0 * self.h * self.inv_cell - 1e-6))
         self.far_rate = ti.ndarray(ti.f32, 1)
         # the cells' position and velocity boxes for k_far_rate's fast particles (k_cell_bounds),
-        # made when first needed; stand-ins while there are none to search
-        self.cell_bounds = None
+        # and the velocity boxes over the search's reach (k_around_bounds), made when first
+        # needed; stand-ins while there are none to search
+        self.cell_bounds = self.around_bounds = None
         self._no_bounds = [ti.Vector.ndarray(3, ti.f32, shape=1) for _ in range(6)]
         self.alpha = ti.ndarray(ti.f32, n)
         # a solve's sweeps read these (the passes' note): positions with the sweep's kappa, velocities
@@ -1252,18 +1253,21 @@ class DFSPHSolver(SPHSolver):
             guess = self.dt_prev or self.params.max_dt
             if self.vmax > fast:
                 if self.cell_bounds is None:
-                    self.cell_bounds = [ti.Vector.ndarray(3, ti.f32, shape=self.n_cells) for _ in range(8)]
+                    self.cell_bounds, self.around_bounds = ([ti.Vector.ndarray(3, ti.f32, shape=self.n_cells)
+                                                             for _ in range(4)] for _ in range(2))
                 k_cell_bounds(self.position, self.velocity, self.acceleration, self.start, self.count, guess,
-                              *self.cell_bounds[:4])
-                b = self.cell_bounds
-                k_around_bounds(self.count, self.dims, self.far_reach, 0, b[2], b[3], b[4], b[5])
-                k_around_bounds(self.count, self.dims, self.far_reach, 1, b[4], b[5], b[6], b[7])
-                k_around_bounds(self.count, self.dims, self.far_reach, 2, b[6], b[7], b[4], b[5])
+                              *self.cell_bounds)
+                lo_w, hi_w = self.cell_bounds[2:]
+                lo, hi, lo_t, hi_t = self.around_bounds      # the boxes, and their scratch pair
+                k_around_bounds(self.count, self.dims, self.far_reach, 0, lo_w, hi_w, lo, hi)
+                k_around_bounds(self.count, self.dims, self.far_reach, 1, lo, hi, lo_t, hi_t)
+                k_around_bounds(self.count, self.dims, self.far_reach, 2, lo_t, hi_t, lo, hi)
             self.far_rate.fill(0.0)
             k_far_rate(self.position, self.velocity, self.acceleration, self.near_count, self.start, self.count,
                        self.origin, self.inv_cell, self.dims, self.far_reach, self.prm, self.ctype, self.cprm,
                        self.sdf, r, cfl, guess, max(self.vmax, self.speed_floor, self.vmax_lone), fast,
-                       int(self.vmax > fast), KNOWN_RATE_MARGIN / dt, *(self.cell_bounds or self._no_bounds)[:6],
+                       int(self.vmax > fast), KNOWN_RATE_MARGIN / dt,
+                       *(self.cell_bounds + self.around_bounds[:2] if self.cell_bounds else self._no_bounds),
                        self.far_rate)
             dt = min(dt, 1.0 / float(self.read(self.far_rate, 0)))
         return dt
