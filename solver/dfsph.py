@@ -1176,7 +1176,7 @@ class DFSPHSolver(SPHSolver):
             return
         k_kick(self.velocity, self.acceleration, dt)
         if self.implicit is None:
-            self.implicit = ImplicitViscosity(self.n)
+            self.implicit = ImplicitViscosity(self.n, read=self.read, on_cpu=self.on_cpu)
         it, res = self.implicit.solve(self.velocity, self.fluid, self.near, self.near_count, self.wpair,
                                       self.near_lay, self.rows, self.ftab, self.wall_visc, dt, self.viscous_dv)
         self.counters["viscosity_steps"] += 1
