@@ -35,7 +35,7 @@ iterations launched after that do nothing. The first launch also takes both star
 and chooses between them. The host reads the controller once a launch on the CPU; on a GPU
 (where a read waits for the device) it first launches as many iterations as the last solve took.
 (The host's loop, a sum read back after each of the two passes, took seven launches an iteration
-at about 0.23 ms each on the 2-core CPU: bench/solver.py's dam break made 7,531 launches, 4,609
+at about 0.23 ms each on the 2-core CPU: bench/solver.py's dam break made 7,660 launches, 4,697
 with this one.) Sums over particles are solver.sums's, in float64 in the same order on every run
 and backend, so the device decides as the host did, bit for bit.
 """
