@@ -42,24 +42,21 @@ FRAME_DATASETS = {"position": np.float32, "velocity": np.float32, "density": np.
 
 # ---------------------------------------------------------------------------- sim frames (HDF5)
 def write_h5(final: Path, datasets: dict[str, np.ndarray], attrs: dict) -> Path:
+    """HDF5 builds the file in memory (its core driver, no backing store) and Python writes the
+    image: a full disk is then one OSError from the write, naming the file (atomic_path). Written
+    by HDF5 itself, a write that failed as the file closed came out as a RuntimeError ("Disable
+    slist on flush dest failure failed (file write failed: ... errno = 28 ...)"), and its
+    objects' finalisers printed tracebacks to stderr after it."""
+    with h5py.File(final.name, "w", driver="core", backing_store=False) as f:
+        for k, v in datasets.items():
+            f.create_dataset(k, data=v)
+        for k, v in attrs.items():
+            f.attrs[k] = v
+        f.flush()
+        image = f.id.get_file_image()
     with atomic_path(final) as tmp:
-        try:
-            with h5py.File(tmp, "w") as f:
-                for k, v in datasets.items():
-                    f.create_dataset(k, data=v)
-                for k, v in attrs.items():
-                    f.attrs[k] = v
-        except OSError as err:
-            raise _system_error(err, final) from err
+        tmp.write_bytes(image)
     return final
-
-
-def _system_error(err: OSError, final: Path) -> OSError:
-    """HDF5 reports a failed write as one long message with the system's error inside ("file
-    write failed: time = ..., filename = <the temporary>, ..., errno = 28, error message = 'No
-    space left on device', ..."): that error, naming the file being written."""
-    m = re.search(r"errno = (\d+), error message = '([^']*)'", str(err))
-    return OSError(int(m.group(1)), m.group(2), str(final)) if m else err
 
 
 def write_frame(final: Path, data: dict[str, np.ndarray], attrs: dict) -> Path:

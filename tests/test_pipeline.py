@@ -434,21 +434,46 @@ def test_a_writers_system_error_names_the_file_it_was_writing(tmp_path):
 def test_a_full_disk_under_hdf5_is_the_systems_error_naming_the_frame(tmp_path):
     """HDF5 reports a failed write as a long message holding the system's errno (the CLI printed
     "Unable to synchronously create file (file write failed: time = ..., filename = <the
-    temporary>, ..."): write_h5 on a full 64 kB tmpfs (skipped where none can be mounted) raises
-    ENOSPC naming the frame, and leaves nothing behind."""
+    temporary>, ..."), and where the disk filled as the file closed, as a RuntimeError, its
+    objects' finalisers printing tracebacks after it (the 12 MB disk of
+    test_a_disk_too_small_is_refused... once caught a checkpoint so). write_h5 on a full 64 kB
+    tmpfs (skipped where none can be mounted), for files from 4 kB (which fit) past the disk's
+    size, stepped so that some fill it in their data and some in the metadata HDF5 writes at
+    close: every failure is ENOSPC naming the frame, nothing is left behind, and nothing is
+    raised from a finaliser."""
     import errno
+    import gc
 
     from conftest import mounted_tmpfs
 
     from pipeline.formats import write_h5
 
-    with mounted_tmpfs(tmp_path / "disk", "size=64k") as disk:
-        final = disk / "f.0001.h5"
-        with pytest.raises(OSError) as caught:
-            write_h5(final, {"position": np.ones((100_000, 3), np.float32)}, {"frame": 1})
-        assert (caught.value.errno, caught.value.strerror, caught.value.filename) == \
-            (errno.ENOSPC, "No space left on device", str(final))
-        assert list(disk.iterdir()) == []
+    unraisable = []
+    hook, sys.unraisablehook = sys.unraisablehook, unraisable.append
+    try:
+        with mounted_tmpfs(tmp_path / "disk", "size=64k") as disk:
+            failed = 0
+            for n in range(100, 8000, 150):
+                final = disk / "f.0001.h5"
+                datasets = {f"d{k}": np.ones((n // 10 + 1, 3), np.float32) for k in range(10)}
+                try:
+                    write_h5(final, datasets, {f"a{k}": np.arange(20) for k in range(30)})
+                except OSError as err:
+                    failed += 1
+                    assert (err.errno, err.strerror, err.filename) == \
+                        (errno.ENOSPC, "No space left on device", str(final))
+                    assert list(disk.iterdir()) == []
+                else:
+                    final.unlink()
+            gc.collect()
+            assert 0 < failed < len(range(100, 8000, 150))
+            with pytest.raises(OSError) as caught:
+                write_h5(final, {"position": np.ones((100_000, 3), np.float32)}, {"frame": 1})
+            assert (caught.value.errno, caught.value.filename) == (errno.ENOSPC, str(final))
+            assert list(disk.iterdir()) == []
+    finally:
+        sys.unraisablehook = hook
+    assert not unraisable, [str(u.exc_value) for u in unraisable]
 
 
 def test_dead_temporaries_are_removed_but_live_ones_kept(tmp_path):
