@@ -22,6 +22,12 @@ particle moved by a uniform +-1 um, seeds 1 ... K), the same code took 319 to 35
 milliseconds a step, and the shot's speed by the seeds' spread.
 
     .venv/bin/python bench/solver.py --only sphshot --seeds 4
+
+The host's minute moves a run's wall time by up to 10 % either way (two quiet runs of the same code
+on the 2-core CPU, 16.2 and 19.4 s); `--rounds N` runs both sides N times, alternately, and prints
+each round's ratios and their median and range, the figure to quote for a target such as x1.5.
+
+    .venv/bin/python bench/solver.py --anchor-solvers dfsph --rounds 5
 """
 from __future__ import annotations
 
@@ -32,6 +38,7 @@ import math
 import os
 import re
 import resource
+import statistics
 import subprocess
 import sys
 import time
@@ -232,6 +239,8 @@ def main() -> None:
     ap.add_argument("--skin", type=float, help="Verlet skin in units of h (default: the solver's)")
     ap.add_argument("--seeds", type=int, default=0,
                     help="also run our side this many times from the lattice moved by +-1 um (the step count's spread)")
+    ap.add_argument("--rounds", type=int, default=1,
+                    help="run both sides this many times, alternately, and print the ratios' median and range")
     ap.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -240,11 +249,29 @@ def main() -> None:
     load = os.getloadavg()[0]
     print(f"# {os.cpu_count()} cores, 1-min load {load:.2f}{'  (busy machine: numbers are noisy)' if load > 0.5 else ''}")
     print(f"# command: {' '.join([Path(sys.executable).name, *sys.argv])}")
+    if args.rounds < 1:
+        ap.error("--rounds must be at least 1")
+    ratios = []
+    for k in range(args.rounds):
+        if args.rounds > 1:
+            print(f"# round {k + 1} of {args.rounds}, 1-min load {os.getloadavg()[0]:.2f}")
+        ratios += one_round(args, with_seeds=(k == 0))
+    if args.rounds > 1 and ratios:
+        for name in sorted({r[0] for r in ratios}):
+            ps = [r[1] for r in ratios if r[0] == name]
+            ss = [r[2] for r in ratios if r[0] == name]
+            print(f"RATIO {name}, median of {len(ss)} rounds: particle-steps/s x{statistics.median(ps):.2f} "
+                  f"(x{min(ps):.2f}-x{max(ps):.2f}), simulated s per wall s x{statistics.median(ss):.2f} "
+                  f"(x{min(ss):.2f}-x{max(ss):.2f})")
+
+
+def one_round(args, with_seeds: bool) -> list[tuple[str, float, float]]:
+    """Our side (and its seeds in the first round), then the anchor's; prints the rows and the
+    ratios; returns (pair, particle-steps ratio, simulated-seconds ratio) for each pair."""
     rows = []
     if args.only != "anchor":
         rows.append(run_sphshot(args))
-    if args.only != "anchor":
-        for seed in range(1, args.seeds + 1):
+        for seed in range(1, (args.seeds if with_seeds else 0) + 1):
             r = run_sphshot(argparse.Namespace(**{**vars(args), "seed": seed}))
             r["solver"] += f"-seed{seed}"
             rows.append(r)
@@ -258,6 +285,7 @@ def main() -> None:
         print(f"{r['solver']:22s} " + " ".join(f"{k}={r.get(k)}" for k in keys + extra)
               + (f" phases={r['phase_s']}" if "phase_s" in r else ""))
     ours = [r for r in rows if r["solver"].startswith("sphshot")]
+    ratios = []
     for ref in (r for r in rows if r["solver"].startswith("splishsplash")):
         for o in ours:
             ps = float(o["particle_steps_per_s"]) / float(ref["particle_steps_per_s"])
@@ -265,7 +293,8 @@ def main() -> None:
             mem = float(o["peak_rss_mb"]) / float(ref["peak_rss_mb"]) if ref.get("peak_rss_mb") not in (None, "None") else float("nan")
             print(f"RATIO {o['solver']} / {ref['solver']}: particle-steps/s x{ps:.2f}, "
                   f"simulated s per wall s x{ss:.2f}, peak memory x{mem:.2f}")
-
+            ratios.append((f"{o['solver']} / {ref['solver']}", ps, ss))
+    return ratios
 
 if __name__ == "__main__":
     main()
