@@ -246,11 +246,11 @@ def main() -> None:
     args = ap.parse_args()
     if args.child:
         return child(args)
+    if args.rounds < 1:
+        ap.error("--rounds must be at least 1")
     load = os.getloadavg()[0]
     print(f"# {os.cpu_count()} cores, 1-min load {load:.2f}{'  (busy machine: numbers are noisy)' if load > 0.5 else ''}")
     print(f"# command: {' '.join([Path(sys.executable).name, *sys.argv])}")
-    if args.rounds < 1:
-        ap.error("--rounds must be at least 1")
     ratios = []
     for k in range(args.rounds):
         if args.rounds > 1:
@@ -295,6 +295,7 @@ def one_round(args, with_seeds: bool) -> list[tuple[str, float, float]]:
                   f"simulated s per wall s x{ss:.2f}, peak memory x{mem:.2f}")
             ratios.append((f"{o['solver']} / {ref['solver']}", ps, ss))
     return ratios
+
 
 if __name__ == "__main__":
     main()
