@@ -170,6 +170,9 @@ def child(args) -> None:
         result["phase_s"] = {k: round(v, 2) for k, v in s.timer.totals.items()}
     if args.device_bytes:
         result["device_bytes_per_particle"] = round(device_bytes(s) / s.n)
+    # this process's own peak (the parent's RUSAGE_CHILDREN is the largest of all its children
+    # so far: with --rounds or --seeds, every round after the first reported the worst one's)
+    result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
     print("RESULT " + json.dumps(result), flush=True)
 
 
@@ -197,10 +200,7 @@ def run_sphshot(args) -> dict:
     m = re.search(r"^RESULT (\{.*\})$", proc.stdout, re.M)
     if proc.returncode != 0 or not m:
         raise SystemExit(f"sphshot child failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
-    r = json.loads(m.group(1))
-    # the first child of this process, so the children's maximum is its own peak
-    r["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0, 1)
-    return r
+    return json.loads(m.group(1))
 
 
 def run_anchor(args) -> list[dict]:
