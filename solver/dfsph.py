@@ -69,7 +69,7 @@ from . import kernels as K
 from .boundaries import (boundary_sums, collider_sdf, mirror_walls, nearest_walls, reflect, reflect_velocity,
                          wall_viscosity)
 from .errors import Unstable
-from .neighbours import cell_of, flat, k_gather_f1, k_gather_v3, list_step
+from .neighbours import cell_of, flat, k_follow, list_step
 from .params import F_ETA, F_INV_MASS, F_MASS, F_MU, F_RHO0, F_SIGMA, F_XSPH, NO_SLIP_ROWS, SolverParams
 from .sph import NOT_FINITE, SPHSolver
 from .stability import explicit_viscous_limit
@@ -1003,7 +1003,7 @@ class DFSPHSolver(SPHSolver):
         super().build_lists(from_position)     # sorts the particles: the warm-start arrays follow them
         for name in self.EXTRA + self.EXTRA_VECTORS:
             a, b = getattr(self, name), getattr(self, name + "_b")
-            (k_gather_v3 if name in self.EXTRA_VECTORS else k_gather_f1)(self.order, a, b)
+            k_follow(self.order, a, b)
             setattr(self, name, b)
             setattr(self, name + "_b", a)
 

@@ -374,14 +374,8 @@ def k_moved_beyond(position: V3, ref: V3, limit: ti.f32, flag: I1):
 
 
 @ti.kernel
-def k_gather_f1(order: I1, src: F1, dst: F1):
-    """dst[s] = src[order[s]]: a per-particle float array follows the sort."""
-    for s in order:
-        dst[s] = src[order[s]]
-
-
-@ti.kernel
-def k_gather_v3(order: I1, src: V3, dst: V3):
-    """dst[s] = src[order[s]]: a per-particle vector array follows the sort."""
+def k_follow(order: I1, src: ti.types.ndarray(ndim=1), dst: ti.types.ndarray(ndim=1)):
+    """dst[s] = src[order[s]]: a per-particle array (of any element type: Taichi compiles one
+    kernel per type) follows the sort."""
     for s in order:
         dst[s] = src[order[s]]
