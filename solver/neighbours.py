@@ -8,7 +8,7 @@ the group (list_pass).
 """
 import taichi as ti
 
-from .types import D1, F1, I1, T, V3, ivec2, ivec3, raise_max, vec3
+from .types import D1, I1, T, V3, ivec2, ivec3, raise_max, vec3
 
 SCAN_BLOCK = 256
 # On a GPU, cells are (h + skin) / CELL_DIV wide; a particle's list neighbours lie within CELL_DIV
