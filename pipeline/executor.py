@@ -133,7 +133,7 @@ class DaskExecutor:
 
         from solver.backend import allowed_cpus
 
-        from .workers import PinToShare, cpu_shares
+        from .workers import PinToShare, QuietLogs, cpu_shares
 
         for name in list(logging.root.manager.loggerDict):   # Dask logs every connection at INFO
             if name.startswith("distributed"):
@@ -155,6 +155,7 @@ class DaskExecutor:
                                         dashboard_address=None, scheduler_kwargs={"dashboard": False},
                                         silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
+            self.client.register_plugin(QuietLogs(), name="sphshot-quiet")
             if hasattr(os, "sched_setaffinity"):
                 self.client.register_plugin(PinToShare(cpu_shares(cpus, n)), name="sphshot-pin")
         log.info("dask: %s, %d worker(s)", scheduler or "local cluster",

@@ -5,6 +5,7 @@ not pay for importing distributed on serial runs.
 """
 from __future__ import annotations
 
+import logging
 import os
 
 from distributed.diagnostics.plugin import WorkerPlugin
@@ -41,3 +42,18 @@ class PinToShare(WorkerPlugin):
             except OSError:              # a thread that ended since listdir
                 pass
         os.environ["LP_NUM_THREADS"] = str(len(share))    # read when a render window opens
+
+
+class QuietLogs(WorkerPlugin):
+    """Dask worker plugin: a local worker's own distributed log lines are not printed.
+
+    A heartbeat that races the scheduler's shutdown at the end of a run (after a failed frame,
+    say) printed a `Failed to communicate with scheduler` traceback into the user's terminal.
+    Nothing a worker logs is the user's news: a task's failure comes back through its future and
+    is reported as one line naming the frame, and a worker that dies is reported by its nanny,
+    which runs in the CLI's process.
+    """
+    def setup(self, worker) -> None:
+        for name in ["distributed", *logging.root.manager.loggerDict]:
+            if name == "distributed" or name.startswith("distributed."):
+                logging.getLogger(name).setLevel(logging.CRITICAL)

@@ -4,6 +4,7 @@ the SLURM / OpenCue / OpenJD exports, each run locally end to end."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shlex
 import shutil
@@ -243,8 +244,13 @@ def test_dask_streams_and_reports_a_failed_frame_by_number(job_copy, monkeypatch
     try:
         run_stages(spec, ["sim", "surface", "render"], list(spec.frames), executor=ex,
                    progress=Progress(stream=open(os.devnull, "w"), interactive=False))
+        # the local workers print nothing of their own: a heartbeat racing the shutdown once put a
+        # distributed traceback under the failure line checked below
+        worker_levels = ex.client.run(
+            lambda: __import__("logging").getLogger("distributed.worker").getEffectiveLevel())
     finally:
         ex.close()
+    assert worker_levels and set(worker_levels.values()) == {logging.CRITICAL}, worker_levels
     assert waited and waited[0] < 120, "surface frame 1 was not published while the sim waited for it: " \
         "the surface stage did not stream behind the sim"
     assert paths.surface_vdb(1).stat().st_mtime < paths.sim_frame(2).stat().st_mtime
