@@ -133,11 +133,10 @@ class DaskExecutor:
 
         from solver.backend import allowed_cpus
 
-        from .workers import PinToShare, QuietLogs, cpu_shares
+        from .workers import PinToShare, QuietLogs, cpu_shares, set_distributed_log_level
 
-        for name in list(logging.root.manager.loggerDict):   # Dask logs every connection at INFO
-            if name.startswith("distributed"):
-                logging.getLogger(name).setLevel(max(logging.WARNING, log.getEffectiveLevel()))
+        # Dask logs every connection at INFO
+        set_distributed_log_level(max(logging.WARNING, log.getEffectiveLevel()))
         self.retries = retries
         self.cluster = None
         if scheduler:

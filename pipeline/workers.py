@@ -54,6 +54,11 @@ class QuietLogs(WorkerPlugin):
     which runs in the CLI's process.
     """
     def setup(self, worker) -> None:
-        for name in ["distributed", *logging.root.manager.loggerDict]:
-            if name == "distributed" or name.startswith("distributed."):
-                logging.getLogger(name).setLevel(logging.CRITICAL)
+        set_distributed_log_level(logging.CRITICAL)
+
+
+def set_distributed_log_level(level: int) -> None:
+    """Set `distributed` and every logger below it that exists (some have their own level)."""
+    for name in ["distributed", *logging.root.manager.loggerDict]:
+        if name == "distributed" or name.startswith("distributed."):
+            logging.getLogger(name).setLevel(level)
